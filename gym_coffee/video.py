@@ -1,0 +1,149 @@
+"""Write RGB frames (e.g. from ``env.render()`` with ``render_mode="rgb_array"``) to MP4 or GIF.
+
+The format follows the file suffix: ``.mp4`` (H.264 through imageio's ffmpeg plugin; needs the
+``imageio-ffmpeg`` package, a dependency of gym-coffee that ships its own ffmpeg binary) or
+``.gif`` (Pillow, always available). Frames are written atomically: a temporary file in the
+same folder replaces ``path`` only when the video is complete.
+
+Example:
+    >>> frames = [env.render() for _ in range(100)]              # doctest: +SKIP
+    >>> write_video("episode.mp4", frames, fps=20)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["VIDEO_SUFFIXES", "check_video_path", "write_video"]
+
+VIDEO_SUFFIXES = (".mp4", ".gif")
+
+
+def check_video_path(path: str | os.PathLike[str]) -> Path:
+    """Return ``path`` as a Path after checking that its suffix is a supported format.
+
+    Raises:
+        ValueError: the suffix is not ``.mp4`` or ``.gif``.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(
+            f"cannot write a video to {path}: use a name ending in one of {VIDEO_SUFFIXES}"
+        )
+    return path
+
+
+def _as_frames(frames: Iterable[NDArray[Any]]) -> list[NDArray[np.uint8]]:
+    out = []
+    for i, frame in enumerate(frames):
+        arr = np.asarray(frame)
+        if arr.ndim != 3 or arr.shape[2] not in (3, 4):
+            raise ValueError(f"frame {i} has shape {arr.shape}; expected (height, width, 3)")
+        if arr.dtype != np.uint8:
+            if arr.dtype.kind == "f" and arr.size and float(np.nanmax(arr)) <= 1.0:
+                arr = arr * 255.0
+            arr = np.clip(arr, 0, 255).astype(np.uint8)
+        arr = np.ascontiguousarray(arr[:, :, :3])
+        if out and arr.shape != out[0].shape:
+            raise ValueError(f"frame {i} has shape {arr.shape}, frame 0 has {out[0].shape}")
+        out.append(arr)
+    if not out:
+        raise ValueError("no frames to write")
+    return out
+
+
+def _pad_even(frame: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """H.264 with yuv420p needs even width and height: pad by repeating the last row/column."""
+    h, w = frame.shape[:2]
+    return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
+def write_video(
+    path: str | os.PathLike[str],
+    frames: Iterable[NDArray[Any]],
+    fps: float = 20.0,
+    *,
+    overwrite: bool = True,
+) -> Path:
+    """Write ``frames`` (each ``(height, width, 3)`` uint8 RGB) to ``path``.
+
+    Args:
+        path: output file; ``.mp4`` or ``.gif``.
+        frames: the frames, all the same size. Float frames in [0, 1] or [0, 255] are converted.
+        fps: frames per second of the video.
+        overwrite: replace an existing file (default). Without it an existing file is an error.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: unsupported suffix, no frames, frames of different sizes.
+        FileExistsError: ``path`` exists and ``overwrite`` is false.
+        ImportError: MP4 requested but ``imageio-ffmpeg`` is not installed (the message says to
+            install it or to write a ``.gif``).
+    """
+    path = check_video_path(path)
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+    images = _as_frames(frames)
+    suffix = path.suffix.lower()
+    if suffix == ".mp4":
+        try:
+            import imageio_ffmpeg  # noqa: F401
+        except ImportError as exc:
+            raise ImportError(
+                "writing MP4 needs imageio-ffmpeg: run `pip install imageio-ffmpeg` "
+                "(or write a .gif instead)"
+            ) from exc
+    import imageio.v2 as iio2
+    import imageio.v3 as iio3
+
+    folder = path.parent if str(path.parent) else Path(".")
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix, dir=folder)
+    os.close(fd)
+    try:
+        if suffix == ".mp4":
+            writer = iio2.get_writer(
+                tmp,
+                format="FFMPEG",
+                mode="I",
+                fps=float(fps),
+                codec="libx264",
+                pixelformat="yuv420p",
+                quality=7,
+                macro_block_size=1,
+                ffmpeg_log_level="error",
+            )
+            try:
+                for frame in images:
+                    writer.append_data(_pad_even(frame))
+            finally:
+                writer.close()
+        else:
+            # Pillow's GIF duration is per frame, in milliseconds; loop=0 = loop forever.
+            iio3.imwrite(
+                tmp,
+                np.stack(images),
+                extension=".gif",
+                duration=1000.0 / float(fps),
+                loop=0,
+            )
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # mkstemp creates 0600; give the usual permissions
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+    return path

@@ -1,0 +1,297 @@
+"""Demonstration files: lossless round trip, validation messages, safe writing.
+
+Everything here runs on synthetic arrays (no simulator), except the last test, which records
+one real teacher episode.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gym_coffee.demonstrations import (
+    SCHEMA_VERSION,
+    Demonstration,
+    DemonstrationFormatError,
+    DemonstrationSet,
+)
+
+OBS_DIM = 41
+
+
+def make_demo(rng: np.random.Generator, n_steps: int, seed: int = 0) -> Demonstration:
+    return Demonstration(
+        time=np.arange(n_steps) * 0.05,
+        joint_pos=rng.normal(size=(n_steps, 7)),
+        gripper=rng.uniform(0, 0.08, size=n_steps),
+        ee_pos=rng.normal(size=(n_steps, 3)),
+        object_pos={"cup": rng.normal(size=(n_steps, 3)), "machine": rng.normal(size=(n_steps, 3))},
+        object_quat={
+            "cup": rng.normal(size=(n_steps, 4)),
+            "machine": rng.normal(size=(n_steps, 4)),
+        },
+        stages=rng.random((n_steps, 3)) > 0.5,
+        actions=rng.uniform(-1, 1, size=(n_steps, 8)).astype(np.float32),
+        observations=rng.normal(size=(n_steps, OBS_DIM)).astype(np.float32),
+        seed=seed,
+        success=True,
+    )
+
+
+@pytest.fixture
+def demos() -> DemonstrationSet:
+    rng = np.random.default_rng(0)
+    return DemonstrationSet(
+        [make_demo(rng, 30, seed=3), make_demo(rng, 25, seed=4), make_demo(rng, 1, seed=7)],
+        metadata={"env_id": "gym_coffee/CoffeeTask-v0", "env_kwargs": {"a": 1}, "seeds": [3, 4, 7]},
+    )
+
+
+def rewrite(path: Path, out: Path, **changes) -> None:
+    """Copy an .npz, replacing (value) or deleting (None) arrays."""
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    for key, value in changes.items():
+        key = key.replace("__", ".")
+        if value is None:
+            del arrays[key]
+        else:
+            arrays[key] = value
+    np.savez(out, **arrays)
+
+
+def load_error(path: Path) -> str:
+    with pytest.raises(DemonstrationFormatError) as info:
+        DemonstrationSet.load(path)
+    return str(info.value)
+
+
+def test_round_trip_is_lossless(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    loaded = DemonstrationSet.load(path)
+    assert loaded == demos
+    assert len(loaded) == 3 and loaded.seeds == [3, 4, 7]
+    assert loaded.metadata == demos.metadata
+    for a, b in zip(loaded, demos, strict=True):
+        for name in ("time", "joint_pos", "gripper", "ee_pos", "stages", "actions", "observations"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert x.dtype == y.dtype and x.shape == y.shape
+            np.testing.assert_array_equal(x, y)
+        for obj in ("cup", "machine"):
+            np.testing.assert_array_equal(a.object_pos[obj], b.object_pos[obj])
+            np.testing.assert_array_equal(a.object_quat[obj], b.object_quat[obj])
+
+
+def test_file_is_one_npz_without_pickle(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    assert sorted(os.listdir(tmp_path)) == ["d.npz"]  # no temp file left behind
+    with np.load(path, allow_pickle=False) as npz:
+        for key in npz.files:
+            assert npz[key].dtype != object
+        meta = json.loads(str(npz["metadata"]))
+    assert meta["schema_version"] == SCHEMA_VERSION
+    assert meta["obs_dim"] == OBS_DIM
+    assert meta["objects"] == ["cup", "machine"]
+    np.testing.assert_array_equal(npz_lengths(path), [30, 25, 1])
+
+
+def npz_lengths(path: Path) -> np.ndarray:
+    with np.load(path, allow_pickle=False) as npz:
+        return npz["lengths"]
+
+
+def test_sequence_protocol(demos):
+    assert [d.seed for d in demos] == [3, 4, 7]
+    assert demos[-1].n_steps == 1
+    assert isinstance(demos[:2], DemonstrationSet) and len(demos[:2]) == 2
+    assert "seeds=[3, 4, 7]" in repr(demos)
+
+
+def test_never_overwrites_without_overwrite(demos, tmp_path):
+    path = tmp_path / "d.npz"
+    path.write_bytes(b"precious")
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        demos.save(path)
+    assert path.read_bytes() == b"precious"
+    demos.save(path, overwrite=True)
+    assert DemonstrationSet.load(path) == demos
+    assert sorted(os.listdir(tmp_path)) == ["d.npz"]
+
+
+def test_failed_write_leaves_old_file_intact(demos, tmp_path, monkeypatch):
+    path = demos.save(tmp_path / "d.npz")
+    before = path.read_bytes()
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        demos[:1].save(path, overwrite=True)
+    assert path.read_bytes() == before
+    assert sorted(os.listdir(tmp_path)) == ["d.npz"]  # the temp file was removed
+
+
+def test_unserialisable_metadata_fails_before_touching_disk(demos, tmp_path):
+    demos.metadata["bad"] = object()
+    with pytest.raises(TypeError, match="JSON"):
+        demos.save(tmp_path / "d.npz")
+    assert os.listdir(tmp_path) == []
+
+
+def test_empty_set_cannot_be_saved(tmp_path):
+    with pytest.raises(DemonstrationFormatError, match="empty"):
+        DemonstrationSet([]).save(tmp_path / "d.npz")
+
+
+@pytest.mark.parametrize("keep", [10, 500, 0.5])
+def test_truncated_file(demos, tmp_path, keep):
+    path = demos.save(tmp_path / "d.npz")
+    data = path.read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(data[: int(len(data) * keep) if keep < 1 else keep])
+    msg = load_error(cut)
+    assert "cut.npz" in msg and ("truncated or corrupt" in msg)
+
+
+def test_not_a_zip(tmp_path):
+    path = tmp_path / "x.npz"
+    path.write_text("hello")
+    assert "not a readable .npz" in load_error(path)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        DemonstrationSet.load(tmp_path / "nope.npz")
+
+
+def test_corrupt_member(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    # Flip bytes in the middle of the compressed data of one member: CRC / zlib error.
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("joint_pos.npy")
+    data = bytearray(path.read_bytes())
+    start = info.header_offset + 30 + len(info.filename) + len(info.extra)
+    for i in range(start + 20, start + 60):
+        data[i] ^= 0xFF
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(bytes(data))
+    msg = load_error(bad)
+    assert "truncated or corrupt" in msg
+
+
+def test_wrong_shape_names_array_and_expected_shape(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", joint_pos=np.zeros((56, 6)))
+    msg = load_error(tmp_path / "w.npz")
+    assert "'joint_pos'" in msg and "(56, 6)" in msg and "expected (56, 7)" in msg
+
+
+def test_wrong_observation_size(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", observations=np.zeros((56, OBS_DIM + 1), np.float32))
+    msg = load_error(tmp_path / "w.npz")
+    assert "'observations'" in msg and f"expected (56, {OBS_DIM})" in msg
+
+
+def test_lengths_that_do_not_add_up(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", lengths=np.array([30, 25, 2]))
+    msg = load_error(tmp_path / "w.npz")
+    assert "add up to 57" in msg and "56 rows" in msg
+
+
+def test_lengths_and_seeds_disagree(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", seeds=np.array([3, 4]))
+    assert "'seeds'" in load_error(tmp_path / "w.npz")
+    rewrite(path, tmp_path / "w2.npz", lengths=np.array([30, 26, 0]))
+    assert "entries < 1" in load_error(tmp_path / "w2.npz")
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_non_finite_values_name_the_array_and_row(demos, tmp_path, value):
+    path = demos.save(tmp_path / "d.npz")
+    with np.load(path) as npz:
+        ee = npz["ee_pos"].copy()
+    ee[33, 1] = value  # demonstration 1, step 3
+    rewrite(path, tmp_path / "w.npz", ee_pos=ee)
+    msg = load_error(tmp_path / "w.npz")
+    word = "NaN" if np.isnan(value) else "inf"
+    assert f"'ee_pos' contains {word}" in msg and "demonstration 1, step 3" in msg
+
+
+def test_non_finite_in_object_pose(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    with np.load(path) as npz:
+        q = npz["object_quat.machine"].copy()
+    q[0, 0] = np.nan
+    rewrite(path, tmp_path / "w.npz", object_quat__machine=q)
+    assert "'object_quat.machine' contains NaN" in load_error(tmp_path / "w.npz")
+
+
+def test_missing_array(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", object_pos__cup=None, stages=None)
+    msg = load_error(tmp_path / "w.npz")
+    assert "missing arrays" in msg and "'stages'" in msg and "'object_pos.cup'" in msg
+
+
+def edit_metadata(path: Path, out: Path, **changes) -> None:
+    with np.load(path) as npz:
+        meta = json.loads(str(npz["metadata"]))
+    meta.update(changes)
+    rewrite(path, out, metadata=np.array(json.dumps(meta)))
+
+
+@pytest.mark.parametrize("version", [SCHEMA_VERSION + 1, 0, "1", None])
+def test_wrong_schema_version(demos, tmp_path, version):
+    path = demos.save(tmp_path / "d.npz")
+    edit_metadata(path, tmp_path / "w.npz", schema_version=version)
+    msg = load_error(tmp_path / "w.npz")
+    assert f"schema version {version!r} is not supported" in msg
+    if version == SCHEMA_VERSION + 1:
+        assert "newer" in msg
+
+
+def test_not_a_demonstration_file(tmp_path):
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    assert "missing array 'metadata'" in load_error(tmp_path / "other.npz")
+    np.savez(tmp_path / "other2.npz", metadata=np.array('{"format": "something"}'))
+    assert "not a gym_coffee demonstration file" in load_error(tmp_path / "other2.npz")
+    np.savez(tmp_path / "other3.npz", metadata=np.array("{not json"))
+    assert "not valid JSON" in load_error(tmp_path / "other3.npz")
+
+
+def test_pickled_array_is_refused(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", stages=np.array([{"x": 1}], dtype=object))
+    assert "pickle" in load_error(tmp_path / "w.npz")
+
+
+def test_wrong_dtype(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", time=np.array(["a"] * 56))
+    assert "'time' has dtype" in load_error(tmp_path / "w.npz")
+
+
+def test_constructor_validates_shapes():
+    rng = np.random.default_rng(1)
+    demo = make_demo(rng, 5)
+    with pytest.raises(DemonstrationFormatError, match=r"'ee_pos' has shape \(5, 2\)"):
+        Demonstration(**{**vars(demo), "ee_pos": np.zeros((5, 2))})
+    with pytest.raises(DemonstrationFormatError, match=r"'actions' has shape \(4, 8\)"):
+        Demonstration(**{**vars(demo), "actions": np.zeros((4, 8))})
+    with pytest.raises(DemonstrationFormatError, match="same objects"):
+        Demonstration(**{**vars(demo), "object_quat": {"cup": np.zeros((5, 4))}})
+    with pytest.raises(DemonstrationFormatError, match="NaN"):
+        Demonstration(**{**vars(demo), "time": np.full(5, np.nan)})
+    other = make_demo(rng, 5)
+    other.observations = np.zeros((5, OBS_DIM + 2), np.float32)
+    with pytest.raises(DemonstrationFormatError, match="obs_dim"):
+        DemonstrationSet([demo, other])
