@@ -1,0 +1,349 @@
+"""Encoding of demonstrations (paper Sec. III): time-indexed GPs per frame, constraint profile.
+
+Every demonstration is resampled to ``n_steps`` points on normalised time (phase ``s`` in
+``[0, 1]``, ``s = (t - t_0) / (t_end - t_0)``). One GP per output dimension per *frame* then maps
+the phase to
+
+* ``"joint"``: the joint positions and the gripper, absolute (``(n_steps, n_joints + 1)``);
+* one entry per object: the end-effector position relative to the object's *initial* pose,
+  expressed in the object's frame: ``x_rel = R_0^T (x_ee - o_0)`` (a rotated machine is learned in
+  its own axes and reproduced as ``o + R x_rel``).
+
+All demonstrations share the phase grid, so each GP sees ``n_demos`` replicates per input; the GP
+layer collapses them exactly. The predicted std of a heteroscedastic model includes the
+input-dependent noise ``r(s)`` (Eq. 6): in LfD that noise *is* the variation between the
+demonstrations, and where it is small the task is constrained (Sec. III).
+
+This module works on plain arrays; it does not import ``gym_coffee``.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "JOINT_FRAME",
+    "MODELS",
+    "DemonstrationEncoder",
+    "constraint_intervals",
+    "resample",
+]
+
+JOINT_FRAME = "joint"
+"""Name of the joint-space 'frame' (absolute joint positions and gripper)."""
+MODELS = ("local", "heteroscedastic", "exact", "empirical")
+"""Encoders: ``local`` LocalGP of heteroscedastic GPs (the paper), ``heteroscedastic`` one global
+heteroscedastic GP, ``exact`` one homoscedastic exact GP, ``empirical`` the per-phase mean and std
+across demonstrations (no GP; a baseline)."""
+MIN_STD = 1e-4
+"""Floor on predicted standard deviations (units of the dimension: rad, m)."""
+
+
+def resample(time: ArrayLike, values: ArrayLike, n_steps: int) -> NDArray[np.float64]:
+    """Resample one demonstration to ``n_steps`` points, equally spaced in normalised time.
+
+    Args:
+        time: ``(n,)`` increasing time stamps.
+        values: ``(n, d)`` (or ``(n,)``) samples.
+        n_steps: ``T``.
+
+    Returns:
+        ``(n_steps, d)`` linear interpolation at phases ``linspace(0, 1, n_steps)``.
+    """
+    t = np.asarray(time, dtype=float).reshape(-1)
+    v = np.asarray(values, dtype=float)
+    v = v.reshape(len(v), -1)
+    if len(t) != len(v):
+        raise ValueError(f"time has {len(t)} samples but values have {len(v)}")
+    if len(t) < 2:
+        raise ValueError("a demonstration needs at least 2 samples")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError("time stamps must be strictly increasing")
+    phase = (t - t[0]) / (t[-1] - t[0])
+    grid = np.linspace(0.0, 1.0, n_steps)
+    return np.stack([np.interp(grid, phase, v[:, j]) for j in range(v.shape[1])], axis=1)
+
+
+def constraint_intervals(
+    phase: ArrayLike, std: ArrayLike, *, ratio: float = 0.5, min_width: float = 0.02
+) -> list[tuple[float, float, float]]:
+    """Where a frame is *tight*: its std well below its own typical level.
+
+    The frame's spread at phase ``s`` is ``sigma(s) = sqrt(mean_d std_d(s)^2)`` (RMS over its
+    dimensions); it is tight where ``sigma(s) < ratio * median_s sigma(s)``.
+
+    Args:
+        phase: ``(n,)`` increasing phases.
+        std: ``(n, d)`` predicted std per dimension.
+        ratio: threshold relative to the frame's median spread.
+        min_width: intervals shorter than this (in phase) are dropped.
+
+    Returns:
+        ``[(start, end, min_sigma), ...]`` in phase units, in order.
+    """
+    s = np.asarray(phase, dtype=float)
+    sd = np.asarray(std, dtype=float).reshape(len(s), -1)
+    sigma = np.sqrt(np.mean(sd**2, axis=1))
+    tight = sigma < ratio * np.median(sigma)
+    out: list[tuple[float, float, float]] = []
+    i = 0
+    while i < len(s):
+        if not tight[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < len(s) and tight[j + 1]:
+            j += 1
+        if s[j] - s[i] >= min_width:
+            out.append((float(s[i]), float(s[j]), float(sigma[i : j + 1].min())))
+        i = j + 1
+    return out
+
+
+class _Empirical:
+    """Per-phase mean and std across demonstrations (no GP); the ``empirical`` encoder."""
+
+    def fit(self, X: NDArray, y: NDArray) -> _Empirical:
+        x = X[:, 0]
+        self.grid_ = np.unique(x)
+        idx = np.searchsorted(self.grid_, x)
+        n = np.bincount(idx, minlength=len(self.grid_))
+        mean = np.bincount(idx, weights=y, minlength=len(self.grid_)) / n
+        var = np.bincount(idx, weights=(y - mean[idx]) ** 2, minlength=len(self.grid_))
+        self.mean_ = mean
+        self.std_ = np.sqrt(var / np.maximum(n - 1, 1))
+        return self
+
+    def predict(self, X: NDArray, return_std: bool = False):
+        x = np.asarray(X, dtype=float)[:, 0]
+        mean = np.interp(x, self.grid_, self.mean_)
+        if not return_std:
+            return mean
+        return mean, np.interp(x, self.grid_, self.std_)
+
+
+class DemonstrationEncoder:
+    """Time-indexed GPs of demonstrations in joint space and relative to every object (Sec. III).
+
+    Args:
+        n_steps: ``T``, points per resampled demonstration.
+        model: one of :data:`MODELS` (``"local"``: the paper's local heteroscedastic GP).
+        combine: how ``LocalGP`` combines its local models (``"product"``, Eqs. 8-9, or the GP
+            layer's calibrated rule); only for ``model="local"``.
+        threshold: ``LocalGP``'s minimum covariance (relative to the signal variance) for joining
+            a local model (Algorithm 1, line 11).
+        length_scale: initial length scale of the squared-exponential kernel, in phase units.
+        noise_level: initial white-noise variance (normalised outputs).
+        model_kwargs: extra keyword arguments for the GP class.
+        random_state: seed for the GP layer's random parts.
+
+    Attributes:
+        frame_names_: ``["joint", <object names>...]``.
+        phase_: ``(n_steps,)`` the phase grid.
+        data_: per frame, the resampled demonstrations ``(n_demos, n_steps, d)``.
+        models_: per frame, one fitted model per dimension.
+        durations_: ``(n_demos,)`` durations of the demonstrations (time units of the input).
+        fit_time_: seconds spent in :meth:`fit`.
+    """
+
+    def __init__(
+        self,
+        *,
+        n_steps: int = 200,
+        model: str = "local",
+        combine: str = "product",
+        threshold: float = 0.5,
+        length_scale: float = 0.1,
+        noise_level: float = 0.1,
+        model_kwargs: Mapping[str, Any] | None = None,
+        random_state: int | None = 0,
+    ) -> None:
+        self.n_steps = n_steps
+        self.model = model
+        self.combine = combine
+        self.threshold = threshold
+        self.length_scale = length_scale
+        self.noise_level = noise_level
+        self.model_kwargs = model_kwargs
+        self.random_state = random_state
+
+    # ----------------------------------------------------------------- models
+    def _make_model(self) -> Any:
+        if self.model == "empirical":
+            return _Empirical()
+        from lgp_policy.kernels import SquaredExponential, WhiteNoise
+
+        kernel = SquaredExponential(1.0, self.length_scale) + WhiteNoise(self.noise_level)
+        kwargs = dict(self.model_kwargs or {})
+        if self.model == "exact":
+            from lgp_policy.gp import GaussianProcess
+
+            return GaussianProcess(kernel, random_state=self.random_state, **kwargs)
+        if self.model == "heteroscedastic":
+            from lgp_policy.heteroscedastic import HeteroscedasticGP
+
+            return HeteroscedasticGP(kernel, random_state=self.random_state, **kwargs)
+        if self.model == "local":
+            from lgp_policy.local import LocalGP
+
+            return LocalGP(
+                kernel,
+                threshold=self.threshold,
+                combine=self.combine,
+                random_state=self.random_state,
+                **kwargs,
+            )
+        raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
+
+    # -------------------------------------------------------------------- fit
+    def fit(
+        self,
+        times: Sequence[ArrayLike],
+        joint_pos: Sequence[ArrayLike],
+        ee_pos: Sequence[ArrayLike] | None = None,
+        frames: Sequence[Mapping[str, tuple[ArrayLike, ArrayLike]]] | None = None,
+        *,
+        progress: Callable[[str], None] | None = None,
+    ) -> DemonstrationEncoder:
+        """Resample and encode ``n_demos`` demonstrations.
+
+        Args:
+            times: per demonstration, ``(n_i,)`` time stamps.
+            joint_pos: per demonstration, ``(n_i, d_joint)`` joint positions (plus gripper).
+            ee_pos: per demonstration, ``(n_i, 3)`` end-effector positions (world frame).
+            frames: per demonstration, ``{object name: (origin (3,), rotation (3, 3))}``, the
+                object's *initial* pose in the world frame. Every demonstration must name the
+                same objects.
+            progress: called with a short message before each frame is fitted.
+
+        Returns:
+            ``self``.
+        """
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
+        if self.n_steps < 2:
+            raise ValueError(f"n_steps must be >= 2, got {self.n_steps}")
+        n = len(times)
+        if n == 0:
+            raise ValueError("need at least one demonstration")
+        if len(joint_pos) != n:
+            raise ValueError(f"{n} time arrays but {len(joint_pos)} joint arrays")
+        frames = list(frames or [])
+        if frames and (ee_pos is None or len(ee_pos) != n or len(frames) != n):
+            raise ValueError("ee_pos and frames need one entry per demonstration")
+        names = sorted(frames[0]) if frames else []
+        for f in frames:
+            if sorted(f) != names:
+                raise ValueError(
+                    f"every demonstration must name the objects {names}, got {sorted(f)}"
+                )
+        start = _time.perf_counter()
+        self.phase_ = np.linspace(0.0, 1.0, self.n_steps)
+        self.durations_ = np.array(
+            [float(np.asarray(t, dtype=float)[-1] - np.asarray(t, dtype=float)[0]) for t in times]
+        )
+        data = {
+            JOINT_FRAME: np.stack(
+                [resample(t, q, self.n_steps) for t, q in zip(times, joint_pos, strict=True)]
+            )
+        }
+        for name in names:
+            rel = []
+            for t, x, f in zip(times, ee_pos, frames, strict=True):
+                origin, rotation = (np.asarray(a, dtype=float) for a in f[name])
+                x = np.asarray(x, dtype=float)
+                rel.append(resample(t, (x - origin) @ rotation, self.n_steps))  # R^T (x - o)
+            data[name] = np.stack(rel)
+        self.data_ = data
+        self.frame_names_ = [JOINT_FRAME, *names]
+        X = np.tile(self.phase_, n)[:, None]
+        self.models_: dict[str, list[Any]] = {}
+        for name in self.frame_names_:
+            if progress is not None:
+                progress(f"encoding frame '{name}'")
+            Y = data[name]  # (n_demos, T, d)
+            self.models_[name] = [
+                self._make_model().fit(X, Y[:, :, j].reshape(-1)) for j in range(Y.shape[2])
+            ]
+        self.fit_time_ = _time.perf_counter() - start
+        return self
+
+    # ---------------------------------------------------------------- predict
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "models_"):
+            raise RuntimeError("This DemonstrationEncoder is not fitted yet; call fit() first.")
+
+    def predict(
+        self, phase: ArrayLike, frame: str = JOINT_FRAME
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Mean and std (incl. the demonstrations' variation) of one frame at the given phases.
+
+        Args:
+            phase: ``(n,)`` phases in ``[0, 1]``.
+            frame: ``"joint"`` or an object name.
+
+        Returns:
+            ``(mean (n, d), std (n, d))``.
+        """
+        self._check_fitted()
+        if frame not in self.models_:
+            raise KeyError(f"unknown frame {frame!r}; known: {self.frame_names_}")
+        X = np.asarray(phase, dtype=float).reshape(-1, 1)
+        means, stds = [], []
+        for m in self.models_[frame]:
+            mu, sd = m.predict(X, return_std=True)
+            means.append(np.asarray(mu, dtype=float).reshape(-1))
+            stds.append(np.asarray(sd, dtype=float).reshape(-1))
+        return np.stack(means, axis=1), np.maximum(np.stack(stds, axis=1), MIN_STD)
+
+    def constraint_profile(
+        self, phase: ArrayLike | None = None
+    ) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+        """Per frame, ``(mean (n, d), std (n, d))`` over phase (the Fig. 4 curves).
+
+        Low std = a constraint (Sec. III). ``phase`` defaults to :attr:`phase_`.
+        """
+        self._check_fitted()
+        s = self.phase_ if phase is None else np.asarray(phase, dtype=float)
+        return {name: self.predict(s, name) for name in self.frame_names_}
+
+    def constraint_report(
+        self, *, ratio: float = 0.5, min_width: float = 0.02, n_grid: int = 400
+    ) -> list[dict[str, Any]]:
+        """Intervals where each object frame is tight (see :func:`constraint_intervals`).
+
+        Returns:
+            ``[{"frame", "start", "end", "min_std", "label"}, ...]`` with phases in ``[0, 1]`` and
+            labels such as ``"cup, t 0.22-0.31"``; sorted by start.
+        """
+        s = np.linspace(0.0, 1.0, n_grid)
+        return intervals_report(
+            {name: self.predict(s, name)[1] for name in self.frame_names_ if name != JOINT_FRAME},
+            s,
+            ratio=ratio,
+            min_width=min_width,
+        )
+
+
+def intervals_report(
+    stds: Mapping[str, ArrayLike], phase: ArrayLike, *, ratio: float = 0.5, min_width: float = 0.02
+) -> list[dict[str, Any]]:
+    """:func:`constraint_intervals` for several frames, as JSON-ready dictionaries."""
+    report = []
+    for name, sd in stds.items():
+        for a, b, m in constraint_intervals(phase, sd, ratio=ratio, min_width=min_width):
+            report.append(
+                {
+                    "frame": name,
+                    "start": round(a, 4),
+                    "end": round(b, 4),
+                    "min_std": m,
+                    "label": f"{name}, t {a:.2f}-{b:.2f}",
+                }
+            )
+    return sorted(report, key=lambda r: (r["start"], r["frame"]))

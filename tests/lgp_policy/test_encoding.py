@@ -1,0 +1,119 @@
+"""Encoding of synthetic demonstrations with a known constraint (Sec. III)."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from lgp_policy.encoding import DemonstrationEncoder, constraint_intervals, resample
+
+HAVE_LOCAL = importlib.util.find_spec("lgp_policy.local") is not None
+MODELS = [
+    "empirical",
+    pytest.param("local", marks=pytest.mark.skipif(not HAVE_LOCAL, reason="no LocalGP")),
+]
+
+CONSTRAINT = (0.38, 0.52)  # phase interval where the end effector sits at a fixed point of the cup
+
+
+def _bump(s, a, b, edge=0.06):
+    """Smooth 0 -> 1 -> 0 weight, 1 on [a, b]."""
+    up = np.clip((s - (a - edge)) / edge, 0, 1)
+    down = np.clip(((b + edge) - s) / edge, 0, 1)
+    w = np.minimum(up, down)
+    return w * w * (3 - 2 * w)
+
+
+def synthetic_demos(n=4, seed=0):
+    """Demos whose end effector visits cup + (0, 0, 0.05) during CONSTRAINT, free elsewhere."""
+    rng = np.random.default_rng(seed)
+    times, joints, ees, frames = [], [], [], []
+    for _ in range(n):
+        n_steps = int(rng.integers(150, 220))
+        t = np.arange(n_steps) * 0.05
+        s = t / t[-1]
+        cup = np.array([0.5, 0.0, 0.0]) + rng.uniform(-0.15, 0.15, 3) * [1, 1, 0]
+        start = rng.uniform(-0.3, 0.3, 3)
+        end = rng.uniform(-0.3, 0.3, 3)
+        free = (
+            start
+            + (end - start) * s[:, None]
+            + 0.1 * np.sin(2 * np.pi * s[:, None] * rng.uniform(0.5, 1.5, 3))
+        )
+        w = _bump(s, *CONSTRAINT)[:, None]
+        ee = (1 - w) * free + w * (cup + np.array([0.0, 0.0, 0.05]))
+        q = np.column_stack([ee, np.sin(s) + rng.normal(0, 0.01, n_steps)])  # stand-in joints
+        times.append(t)
+        joints.append(q)
+        ees.append(ee)
+        frames.append({"cup": (cup, np.eye(3))})
+    return times, joints, ees, frames
+
+
+def test_resample_endpoints_and_linearity():
+    t = np.array([1.0, 2.0, 4.0])
+    v = np.array([[0.0, 10.0], [1.0, 20.0], [3.0, 40.0]])
+    r = resample(t, v, 4)
+    np.testing.assert_allclose(r[0], v[0])
+    np.testing.assert_allclose(r[-1], v[-1])
+    np.testing.assert_allclose(r[:, 0], [0.0, 1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="increasing"):
+        resample([0.0, 0.0, 1.0], v, 4)
+
+
+def test_constraint_intervals_finds_the_dip():
+    s = np.linspace(0, 1, 101)
+    std = np.ones((101, 3))
+    std[30:41] = 0.05
+    (iv,) = constraint_intervals(s, std)
+    assert iv[0] == pytest.approx(0.30) and iv[1] == pytest.approx(0.40)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_known_constraint_shows_low_std_exactly_there(model):
+    times, joints, ees, frames = synthetic_demos()
+    enc = DemonstrationEncoder(n_steps=100, model=model).fit(times, joints, ees, frames)
+    assert enc.frame_names_ == ["joint", "cup"]
+    assert enc.data_["cup"].shape == (4, 100, 3)
+    s = np.linspace(0, 1, 201)
+    mean, std = enc.predict(s, "cup")
+    inside = (s > CONSTRAINT[0] + 0.02) & (s < CONSTRAINT[1] - 0.02)
+    outside = (s < CONSTRAINT[0] - 0.12) | (s > CONSTRAINT[1] + 0.12)
+    assert std[inside].max() < 0.25 * np.median(std[outside])
+    np.testing.assert_allclose(
+        mean[inside], np.tile([0.0, 0.0, 0.05], (inside.sum(), 1)), atol=0.01
+    )
+    report = enc.constraint_report()
+    cup = [r for r in report if r["frame"] == "cup"]
+    assert len(cup) == 1
+    assert CONSTRAINT[0] - 0.06 <= cup[0]["start"] <= CONSTRAINT[0] + 0.03
+    assert CONSTRAINT[1] - 0.03 <= cup[0]["end"] <= CONSTRAINT[1] + 0.06
+    assert cup[0]["label"].startswith("cup, t 0.")
+
+
+def test_rotated_frame_is_learned_in_its_own_axes():
+    times, joints, ees, frames = synthetic_demos(n=3, seed=1)
+    rng = np.random.default_rng(2)
+    rotated = []
+    for f in frames:
+        yaw = rng.uniform(-0.5, 0.5)
+        R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        rotated.append({"cup": f["cup"], "machine": (f["cup"][0], R)})
+    enc = DemonstrationEncoder(n_steps=50, model="empirical").fit(times, joints, ees, rotated)
+    for i, f in enumerate(rotated):
+        o, R = f["machine"]
+        back = o + enc.data_["machine"][i] @ R.T
+        np.testing.assert_allclose(back, resample(times[i], ees[i], 50), atol=1e-12)
+
+
+def test_input_validation():
+    times, joints, ees, frames = synthetic_demos(n=2)
+    with pytest.raises(ValueError, match="one of"):
+        DemonstrationEncoder(model="nope").fit(times, joints, ees, frames)
+    frames[1] = {"machine": frames[1]["cup"]}
+    with pytest.raises(ValueError, match=r"same objects|must name"):
+        DemonstrationEncoder(model="empirical").fit(times, joints, ees, frames)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        DemonstrationEncoder().predict([0.5])
