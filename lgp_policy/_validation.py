@@ -1,0 +1,116 @@
+"""Input checking shared by the GP estimators.
+
+Every check raises a :class:`ValueError` whose message names the offending argument, so a
+caller sees *what* is wrong and *where* (scikit-learn's ``check_array`` habit).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "check_X",
+    "check_X_y",
+    "check_positive",
+    "check_random_state",
+]
+
+
+def check_X(
+    X: ArrayLike,
+    *,
+    name: str = "X",
+    n_features: int | None = None,
+    min_samples: int = 1,
+) -> NDArray[np.float64]:
+    """Return ``X`` as a finite float64 array of shape ``(n_samples, n_features)``.
+
+    Raises:
+        ValueError: if ``X`` is not 2-D, is empty, has fewer than ``min_samples`` rows, holds
+            NaN or infinity, or has a number of columns other than ``n_features``.
+    """
+    try:
+        arr = np.asarray(X, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric array, got {type(X).__name__}") from exc
+    if arr.ndim != 2:
+        hint = " Reshape 1-D data with X.reshape(-1, 1)." if arr.ndim == 1 else ""
+        raise ValueError(
+            f"{name} must be 2-D with shape (n_samples, n_features), got ndim={arr.ndim}.{hint}"
+        )
+    if arr.shape[0] == 0 or arr.shape[1] == 0:
+        raise ValueError(f"{name} is empty: shape {arr.shape}")
+    if arr.shape[0] < min_samples:
+        raise ValueError(
+            f"{name} has {arr.shape[0]} sample(s); at least {min_samples} are required"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or infinity")
+    if n_features is not None and arr.shape[1] != n_features:
+        raise ValueError(
+            f"{name} has {arr.shape[1]} features, but the model was fitted with {n_features}"
+        )
+    return arr
+
+
+def check_X_y(
+    X: ArrayLike, y: ArrayLike, *, min_samples: int = 2
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Validate training data.
+
+    Returns:
+        ``X (n_samples, n_features)`` and ``y`` as float64, ``y`` of shape ``(n_samples,)`` or
+        ``(n_samples, n_targets)`` exactly as given.
+
+    Raises:
+        ValueError: naming ``X`` or ``y`` for NaN/inf, wrong ndim, empty input, fewer than
+            ``min_samples`` samples, or mismatched lengths.
+    """
+    X_arr = check_X(X, name="X", min_samples=1)
+    try:
+        y_arr = np.asarray(y, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"y must be a numeric array, got {type(y).__name__}") from exc
+    if y_arr.ndim not in (1, 2):
+        raise ValueError(
+            f"y must have shape (n_samples,) or (n_samples, n_targets), got ndim={y_arr.ndim}"
+        )
+    if y_arr.size == 0:
+        raise ValueError(f"y is empty: shape {y_arr.shape}")
+    if y_arr.shape[0] != X_arr.shape[0]:
+        raise ValueError(
+            f"X and y have mismatched lengths: X has {X_arr.shape[0]} samples, "
+            f"y has {y_arr.shape[0]}"
+        )
+    if not np.all(np.isfinite(y_arr)):
+        raise ValueError("y contains NaN or infinity")
+    if X_arr.shape[0] < min_samples:
+        raise ValueError(
+            f"X and y have {X_arr.shape[0]} sample(s); at least {min_samples} are required "
+            "to fit a Gaussian process"
+        )
+    return X_arr, y_arr
+
+
+def check_positive(value: Any, name: str) -> NDArray[np.float64]:
+    """Return ``value`` as a float array after checking that it is finite and > 0."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.size == 0 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise ValueError(f"{name} must be finite and positive, got {value!r}")
+    return arr
+
+
+def check_random_state(random_state: Any) -> np.random.Generator:
+    """Turn ``None``, an int seed or a ``Generator`` into a ``numpy.random.Generator``."""
+    if isinstance(random_state, np.random.Generator):
+        return random_state
+    if random_state is None or isinstance(random_state, (int, np.integer)):
+        return np.random.default_rng(random_state)
+    if isinstance(random_state, np.random.RandomState):
+        return np.random.default_rng(random_state.randint(0, 2**31 - 1))
+    raise ValueError(
+        f"random_state must be None, an int or a numpy Generator, got {type(random_state)}"
+    )
