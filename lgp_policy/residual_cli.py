@@ -1,0 +1,252 @@
+"""``gym-coffee finetune``: residual-RL fine-tuning of the button press.
+
+:func:`lgp_policy.cli.add_subcommands` adds it with::
+
+    from lgp_policy.residual_cli import add_finetune_subcommand
+    add_finetune_subcommand(subparsers)
+
+This module imports only the standard library at module level: ``gym-coffee --help`` and every
+other subcommand work without the ``rl`` extra, and ``finetune`` says which extra to install.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = ["add_finetune_subcommand", "build_env_fn", "make_gate", "run_finetune"]
+
+ENV_ID = "gym_coffee/CoffeeTask-v0"
+VARIANTS = ("none", "press-bias")
+
+
+def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``finetune`` to a ``gym-coffee`` sub-parser set; returns the new parser."""
+    p = subparsers.add_parser(
+        "finetune",
+        help="residual-RL fine-tuning of the button press (needs the rl extra)",
+        description=(
+            "Fine-tune a residual on top of a base policy with an unmodified stable-baselines3 "
+            "algorithm: applied action = clip(base + scale * gate * residual). The gate opens "
+            "in the press phase only; the residual actor starts at zero, so training starts "
+            "from the base policy. Writes DIR/residual_policy.npz (accepted by gym-coffee "
+            "evaluate), DIR/learning_curve.png/.json and DIR/checkpoints/. Needs "
+            'pip install "gym-coffee[rl]".'
+        ),
+    )
+    p.add_argument("policy", metavar="POLICY", help="base policy file (from gym-coffee fit)")
+    p.add_argument("--algo", choices=("sac", "td3", "ppo"), default="sac", help="(default: sac)")
+    p.add_argument(
+        "--timesteps",
+        type=int,
+        default=100_000,
+        metavar="N",
+        help="training budget in env steps (default: 100000)",
+    )
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="(default: 0)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="output folder (default: runs/finetune-ALGO-seedS)",
+    )
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=0.2,
+        help="largest residual, in action units; 1 action unit = 0.05 rad per step (default 0.2)",
+    )
+    p.add_argument(
+        "--gate-start",
+        type=float,
+        default=None,
+        metavar="PHASE",
+        help="phase at which the residual is fully on (default: from the policy's constraint "
+        "report if it has one, else 0.75)",
+    )
+    p.add_argument(
+        "--eval-episodes",
+        type=int,
+        default=20,
+        metavar="K",
+        help="held-out layouts per learning-curve point (default: 20)",
+    )
+    p.add_argument(
+        "--eval-freq", type=int, default=10_000, metavar="N", help="env steps between points"
+    )
+    p.add_argument(
+        "--checkpoint-freq",
+        type=int,
+        default=25_000,
+        metavar="N",
+        help="env steps between checkpoints (default: 25000)",
+    )
+    p.add_argument(
+        "--n-envs",
+        type=int,
+        default=1,
+        metavar="K",
+        help="training envs; K > 1 runs them in subprocesses (default: 1, best on 2 cores)",
+    )
+    p.add_argument(
+        "--variant",
+        choices=VARIANTS,
+        default="none",
+        help="harder env variant for when the base already presses reliably: 'press-bias' adds "
+        "a fixed actuation offset to joints 2 and 4 after time --variant-after "
+        "(see lgp_policy.residual.ActuationNoiseWrapper; default: none)",
+    )
+    p.add_argument("--variant-bias", type=float, default=0.15, help="offset, action units")
+    p.add_argument("--variant-after", type=float, default=None, help="seconds (default: gate)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing DIR")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_finetune)
+    return p
+
+
+def make_gate(base: Any, start: float | None = None) -> Any:
+    """The default gate for ``base``: a :class:`~lgp_policy.residual.PhaseGate` on the base's own
+    phase when it has ``phase(observation)``, else on the observation's time over the base's
+    ``duration`` (seconds) if it has one, else over the env's time limit."""
+    from lgp_policy.residual import PhaseGate
+
+    if start is None:
+        start = _press_phase_start(base)
+    if callable(getattr(base, "phase", None)):
+        return PhaseGate(start=start, source="policy")
+    from gym_coffee.env import CONTROL_DT, MAX_EPISODE_STEPS, OBS_SLICES
+
+    duration = float(getattr(base, "duration", MAX_EPISODE_STEPS * CONTROL_DT))
+    return PhaseGate(
+        start=start,
+        source="observation",
+        time_index=OBS_SLICES["time"].start,
+        time_scale=duration,
+    )
+
+
+def _press_phase_start(base: Any, default: float = 0.75) -> float:
+    """Start of the press phase: the last tight interval of the machine frame in the base's
+    constraint report (``base.constraint_intervals()`` if it offers one), minus a margin."""
+    report = getattr(base, "constraint_intervals", None)
+    if not callable(report):
+        return default
+    try:
+        intervals = [iv for iv in report() if "machine" in str(iv.get("frame", "")).lower()]
+    except Exception:  # a report we do not understand: fall back to the documented default
+        return default
+    if not intervals:
+        return default
+    last = max(intervals, key=lambda iv: float(iv["start"]))
+    return max(0.0, float(last["start"]) - 0.05)
+
+
+def build_env_fn(
+    variant: str = "none",
+    *,
+    bias: float = 0.15,
+    after: float | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+) -> Any:
+    """A picklable factory for the training/evaluation env (optionally the harder variant)."""
+    return _EnvFactory(variant, bias, after, dict(env_kwargs or {}))
+
+
+class _EnvFactory:
+    def __init__(
+        self, variant: str, bias: float, after: float | None, env_kwargs: dict[str, Any]
+    ) -> None:
+        if variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+        if variant != "none" and after is None:
+            raise ValueError("the harder variant needs the time (s) after which it acts")
+        self.variant, self.bias, self.after, self.env_kwargs = variant, bias, after, env_kwargs
+
+    def __call__(self) -> Any:
+        import gymnasium as gym
+
+        import gym_coffee  # noqa: F401  (registers the env)
+
+        env = gym.make(ENV_ID, **self.env_kwargs)
+        if self.variant == "press-bias":
+            from gym_coffee.env import OBS_SLICES
+            from lgp_policy.residual import ActuationNoiseWrapper
+
+            env = ActuationNoiseWrapper(
+                env,
+                dims=[1, 3],
+                bias=[-self.bias, self.bias],
+                start_time=self.after,
+                time_index=OBS_SLICES["time"].start,
+            )
+        return env
+
+
+def run_finetune(args: argparse.Namespace) -> int:
+    """Entry point of ``gym-coffee finetune``."""
+    from lgp_policy.residual import require_rl
+
+    try:
+        _, torch = require_rl()
+    except ImportError as exc:
+        print(f"gym-coffee finetune: {exc}", file=sys.stderr)
+        return 2
+    torch.set_num_threads(1)
+    from lgp_policy.residual import finetune, load_any_policy
+
+    base_path = Path(args.policy)
+    try:
+        base = load_any_policy(base_path)
+    except (OSError, ValueError) as exc:
+        print(f"gym-coffee finetune: cannot load {base_path}: {exc}", file=sys.stderr)
+        return 2
+    gate = make_gate(base, args.gate_start)
+    after = args.variant_after
+    if after is None and args.variant != "none":
+        after = _gate_open_time(gate)
+    env_fn = build_env_fn(args.variant, bias=args.variant_bias, after=after)
+    out = args.out or Path("runs") / f"finetune-{args.algo}-seed{args.seed}"
+    try:
+        result = finetune(
+            base,
+            env_fn,
+            algo=args.algo,
+            total_env_steps=args.timesteps,
+            seed=args.seed,
+            scale=args.scale,
+            gate=gate,
+            residual_dims=list(range(7)),
+            eval_episodes=args.eval_episodes,
+            eval_freq=args.eval_freq,
+            checkpoint_freq=args.checkpoint_freq,
+            n_envs=args.n_envs,
+            out_dir=out,
+            overwrite=args.force,
+            base_path=base_path,
+            progress=not args.no_progress,
+        )
+    except FileExistsError as exc:
+        print(f"gym-coffee finetune: {exc}", file=sys.stderr)
+        return 2
+    first, last = result.curve[0], result.curve[-1]
+    print(
+        f"{result.env_steps} env steps ({result.agent_steps} agent steps) in "
+        f"{result.wall_time_s:.0f} s"
+    )
+    print(f"{'stage':<16}{'base':>8}{'fine-tuned':>12}   ({last['episodes']} held-out layouts)")
+    for key, value in last["rates"].items():
+        print(f"{key:<16}{first['rates'][key]:>8.2f}{value:>12.2f}")
+    print(f"wrote {out / 'residual_policy.npz'}, {out / 'learning_curve.png'}")
+    return 0
+
+
+def _gate_open_time(gate: Any) -> float:
+    """Seconds after reset at which an observation-time gate starts to open (for the variant)."""
+    if getattr(gate, "source", None) == "observation":
+        return float((gate.start - gate.ramp) * gate.time_scale)
+    from gym_coffee.env import CONTROL_DT, MAX_EPISODE_STEPS
+
+    return float((gate.start - gate.ramp) * MAX_EPISODE_STEPS * CONTROL_DT)

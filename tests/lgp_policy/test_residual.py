@@ -1,0 +1,419 @@
+"""Residual RL (issue 5): wrapper, gate, zero-init, fine-tuning, save/load, the rl extra."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.wrappers import TimeAwareObservation
+
+from lgp_policy.residual import (
+    RL_EXTRA_HINT,
+    PhaseGate,
+    ResidualPolicyFormatError,
+    ResidualWrapper,
+    evaluate_stages,
+    gate_from_config,
+    load_any_policy,
+    require_rl,
+)
+from lgp_policy.residual_cli import add_finetune_subcommand
+
+TIME_INDEX = 3  # Pendulum (cos, sin, thetadot) + normalised time
+
+
+class PendulumPD:
+    """A stateless PolicyPredictor for Pendulum-v1 (+ normalised time); exposes its phase."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        obs = np.asarray(observation, dtype=np.float64)
+        o = np.atleast_2d(obs)
+        theta = np.arctan2(o[:, 1], o[:, 0])
+        a = np.clip((-2.0 * theta - 0.5 * o[:, 2]) / 2.0, -1.0, 1.0)[:, None].astype(np.float32)
+        return (a if obs.ndim == 2 else a[0]), state
+
+    def phase(self, observation):
+        return np.atleast_2d(observation)[:, TIME_INDEX]
+
+
+def make_pendulum() -> gym.Env:
+    return TimeAwareObservation(gym.make("Pendulum-v1"), normalize_time=True)
+
+
+class Recorder(gym.Wrapper):
+    """Records the actions the inner env receives."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.actions = []
+
+    def step(self, action):
+        self.actions.append(np.array(action, copy=True))
+        return self.env.step(action)
+
+
+def rollout_base(env, base, seed, n_steps):
+    obs, _ = env.reset(seed=seed)
+    observations, rewards = [obs], []
+    for _ in range(n_steps):
+        action, _ = base.predict(obs[None, :], deterministic=True)
+        obs, reward, terminated, truncated, _ = env.step(action[0])
+        observations.append(obs)
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    return np.array(observations), np.array(rewards)
+
+
+# ---------------------------------------------------------------------------------- wrapper
+@pytest.mark.parametrize("gate_start", [0.0, 0.5])
+def test_zero_residual_reproduces_base_trajectory_pendulum(gate_start):
+    base = PendulumPD()
+    ref_obs, ref_rew = rollout_base(make_pendulum(), base, seed=3, n_steps=200)
+    env = ResidualWrapper(make_pendulum(), base, scale=0.5, gate=PhaseGate(start=gate_start))
+    obs, _ = env.reset(seed=3)
+    got_obs, got_rew = [obs[:4]], []
+    for _ in range(200):
+        obs, reward, terminated, truncated, _ = env.step(np.zeros(1, np.float32))
+        got_obs.append(obs[:4])
+        got_rew.append(reward)
+        if terminated or truncated:
+            break
+    np.testing.assert_array_equal(np.array(got_obs), ref_obs)
+    np.testing.assert_array_equal(np.array(got_rew), ref_rew)
+    assert env.observation_space.shape == (4 + 1 + 1,)
+    assert env.observation_space.contains(obs)
+
+
+def test_zero_residual_reproduces_base_with_skipping():
+    """With skip_ungated the agent sees fewer steps, but the env trajectory is the same."""
+    base = PendulumPD()
+    ref_obs, ref_rew = rollout_base(make_pendulum(), base, seed=5, n_steps=200)
+    env = ResidualWrapper(
+        make_pendulum(), base, gate=PhaseGate(start=0.6, ramp=0.0), skip_ungated=True
+    )
+    obs, _ = env.reset(seed=5)
+    total, env_steps, agent_steps, done = 0.0, 0, 0, False
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(np.zeros(1, np.float32))
+        total += reward
+        env_steps += info["env_steps"]
+        agent_steps += 1
+        done = terminated or truncated
+    assert env_steps == len(ref_rew) == 200
+    assert agent_steps == 1 + 200 - 120  # the first step, then one per gated step
+    np.testing.assert_array_equal(obs[:4], ref_obs[-1])
+    assert total == pytest.approx(ref_rew.sum(), rel=1e-12)
+
+
+def test_gate_is_zero_outside_press_phase():
+    gate = PhaseGate(start=0.8, ramp=0.1, source="observation", time_index=0)
+    phase = np.array([0.0, 0.5, 0.69, 0.7, 0.75, 0.8, 0.95, 1.0, 1.5])
+    values = gate(phase[:, None])
+    np.testing.assert_array_equal(values[:4], 0.0)
+    assert 0.0 < values[4] < 1.0
+    np.testing.assert_array_equal(values[5:], 1.0)
+    closed = PhaseGate(start=0.8, end=1.0, ramp=0.0, source="observation", time_index=0)
+    np.testing.assert_array_equal(closed(phase[:, None]), [0, 0, 0, 0, 0, 1, 1, 1, 0])
+    assert gate_from_config(gate.to_config()) == gate
+    assert gate_from_config(json.loads(json.dumps(closed.to_config()))) == closed
+
+    # In the wrapper: random residuals change nothing while the gate is closed.
+    base = PendulumPD()
+    rec = Recorder(make_pendulum())
+    env = ResidualWrapper(rec, base, scale=1.0, gate=PhaseGate(start=0.5, ramp=0.0))
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    gates, bases = [], []
+    for _ in range(200):
+        _, _, terminated, truncated, info = env.step(env.action_space.sample())
+        gates.append(info["residual_gate"])
+        bases.append(info["base_action"])
+        if terminated or truncated:
+            break
+    gates, bases, applied = np.array(gates), np.array(bases), np.array(rec.actions)
+    assert np.all(gates[:100] == 0.0) and np.all(gates[100:] == 1.0)
+    np.testing.assert_array_equal(applied[:100], bases[:100])
+    assert np.any(applied[100:] != bases[100:])
+
+
+def test_policy_gate_needs_phase_or_time_index():
+    class NoPhase:
+        def predict(self, observation, state=None, episode_start=None, deterministic=False):
+            return np.zeros((len(np.atleast_2d(observation)), 1), np.float32), state
+
+    with pytest.raises(TypeError, match="phase"):
+        PhaseGate()(np.zeros((1, 4)), NoPhase())
+    with pytest.raises(ValueError, match="time_index"):
+        PhaseGate(source="observation")
+
+
+def test_wrapper_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="scale"):
+        ResidualWrapper(make_pendulum(), PendulumPD(), scale=0.0)
+    with pytest.raises(ValueError, match="residual_dims"):
+        ResidualWrapper(make_pendulum(), PendulumPD(), residual_dims=[1])
+    with pytest.raises(TypeError, match="predict"):
+        ResidualWrapper(make_pendulum(), object())
+
+
+# ---------------------------------------------------------------------------- optional extra
+def test_require_rl_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "stable_baselines3", None)
+    with pytest.raises(ImportError, match=r'pip install "gym-coffee\[rl\]"'):
+        require_rl()
+
+
+def test_finetune_cli_without_rl_says_which_extra(monkeypatch, capsys, tmp_path):
+    monkeypatch.setitem(sys.modules, "torch", None)
+    parser = argparse.ArgumentParser(prog="gym-coffee")
+    add_finetune_subcommand(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["finetune", str(tmp_path / "policy.npz"), "--timesteps", "10"])
+    assert args.func(args) == 2
+    assert RL_EXTRA_HINT in capsys.readouterr().err
+
+
+def test_modules_import_without_sb3_and_torch():
+    code = (
+        "import sys\n"
+        "sys.modules['stable_baselines3'] = None\n"
+        "sys.modules['torch'] = None\n"
+        "import lgp_policy, lgp_policy.residual, lgp_policy.residual_cli\n"
+        "from lgp_policy import ResidualWrapper, ResidualPolicy\n"
+        "import numpy as np, gymnasium as gym\n"
+        "from lgp_policy.residual import PhaseGate\n"
+        "class B:\n"
+        "    def predict(self, o, state=None, episode_start=None, deterministic=False):\n"
+        "        return np.zeros((len(o), 1), np.float32), state\n"
+        "g = PhaseGate(source='observation', time_index=0)\n"
+        "env = ResidualWrapper(gym.make('Pendulum-v1'), B(), gate=g)\n"
+        "env.reset(seed=0); env.step(np.zeros(1, np.float32))\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().endswith("ok")
+
+
+# ---------------------------------------------------------------------------- SB3 mechanics
+sb3 = pytest.importorskip("stable_baselines3")
+torch = pytest.importorskip("torch")
+
+from lgp_policy.residual import (  # noqa: E402
+    DEFAULT_HYPERPARAMETERS,
+    ResidualPolicy,
+    _build_model,
+    finetune,
+)
+
+
+def _wrapped(gate_start=0.0):
+    return ResidualWrapper(
+        make_pendulum(), PendulumPD(), scale=0.5, gate=PhaseGate(start=gate_start, ramp=0.0)
+    )
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3", "ppo"])
+def test_zero_initialised_actor_outputs_zero(algo):
+    env = _wrapped()
+    hp = dict(DEFAULT_HYPERPARAMETERS[algo])
+    if algo != "ppo":
+        hp["buffer_size"] = 100
+    model = _build_model(algo, env, hp, seed=0)
+    obs = np.stack([env.observation_space.sample() for _ in range(16)])
+    action, _ = model.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(action, 0.0)
+    if algo == "td3":
+        with torch.no_grad():
+            target = model.policy.actor_target(torch.as_tensor(obs))
+        np.testing.assert_array_equal(target.numpy(), 0.0)
+    if algo in ("sac", "ppo"):  # the exploration noise is small, not uniform on [-1, 1]
+        sampled, _ = model.predict(np.repeat(obs, 50, axis=0), deterministic=False)
+        assert 0.05 < np.std(sampled) < 0.45
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_warmup_does_not_inject_full_scale_residuals(algo):
+    hp = {"buffer_size": 200, "batch_size": 16}
+    result = finetune(
+        PendulumPD(),
+        make_pendulum,
+        algo=algo,
+        total_env_steps=60,
+        gate=PhaseGate(start=0.0),
+        hyperparameters=hp,
+        eval_seeds=[],
+        progress=False,
+        skip_ungated=False,
+    )
+    buffer = result.policy.model.replay_buffer
+    actions = buffer.actions[: buffer.pos].ravel()
+    assert actions.size >= 50
+    assert np.max(np.abs(actions)) < 0.95  # uniform warm-up would reach ~1
+    assert np.mean(np.abs(actions)) < 0.35  # uniform warm-up: 0.5
+
+
+def test_tiny_finetune_saves_a_policy_that_loads_and_predicts_identically(tmp_path):
+    base = PendulumPD()
+    result = finetune(
+        base,
+        make_pendulum,
+        algo="sac",
+        total_env_steps=300,
+        seed=1,
+        scale=0.5,
+        gate=PhaseGate(start=0.5, ramp=0.0),
+        eval_seeds=[20_000, 20_001],
+        eval_freq=150,
+        checkpoint_freq=150,
+        out_dir=tmp_path / "run",
+        hyperparameters={"batch_size": 32},
+        progress=False,
+    )
+    assert result.env_steps >= 300
+    assert result.agent_steps < result.env_steps  # ungated steps were skipped
+    assert result.curve[0]["env_steps"] == 0 and len(result.curve) >= 3
+    run = tmp_path / "run"
+    assert (run / "learning_curve.png").stat().st_size > 1000
+    assert json.loads((run / "learning_curve.json").read_text())["algo"] == "sac"
+    assert sorted(p.name for p in (run / "checkpoints").iterdir())
+    path = run / "residual_policy.npz"
+    with np.load(path, allow_pickle=False) as data:  # nothing pickled
+        assert all(data[k].dtype != object for k in data.files)
+
+    loaded = ResidualPolicy.load(path, base=base)
+    obs = np.stack([make_pendulum().observation_space.sample() for _ in range(64)])
+    obs[:, TIME_INDEX] = np.linspace(0, 1, 64)
+    expected, _ = result.policy.predict(obs, deterministic=True)
+    got, _ = loaded.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(got, expected)
+    single, _ = loaded.predict(obs[40], deterministic=True)
+    np.testing.assert_array_equal(single, expected[40])
+    # Closed gate: exactly the base.
+    base_action, _ = base.predict(obs[:32])
+    np.testing.assert_array_equal(got[:32], base_action)
+
+    with pytest.raises(FileExistsError, match="overwrite"):
+        result.policy.save(path)
+    with pytest.raises(FileExistsError):
+        finetune(base, make_pendulum, total_env_steps=10, out_dir=run, progress=False)
+
+    # The loaded policy works in SB3's evaluate_policy (batched, vectorised).
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    venv = DummyVecEnv([lambda: Monitor(make_pendulum())] * 2)
+    mean, _ = evaluate_policy(loaded, venv, n_eval_episodes=2)
+    assert np.isfinite(mean)
+
+
+SMALL = {
+    "sac": {"buffer_size": 50, "batch_size": 8},
+    "td3": {"buffer_size": 50, "batch_size": 8},
+    "ppo": {"n_steps": 16, "batch_size": 8},
+}
+
+
+def _save_small_policy(tmp_path, algo="td3"):
+    result = finetune(
+        PendulumPD(),
+        make_pendulum,
+        algo=algo,
+        total_env_steps=20,
+        gate=PhaseGate(start=0.0),
+        eval_seeds=[],
+        progress=False,
+        hyperparameters=SMALL[algo],
+    )
+    path = tmp_path / f"{algo}.npz"
+    result.policy.save(path)
+    return path, result.policy
+
+
+@pytest.mark.parametrize("algo", ["td3", "ppo"])
+def test_round_trip_other_algorithms(tmp_path, algo):
+    path, policy = _save_small_policy(tmp_path, algo)
+    loaded = ResidualPolicy.load(path, base=PendulumPD())
+    obs = np.stack([make_pendulum().observation_space.sample() for _ in range(8)])
+    np.testing.assert_array_equal(
+        loaded.predict(obs, deterministic=True)[0], policy.predict(obs, deterministic=True)[0]
+    )
+
+
+def _rewrite(src: Path, dst: Path, edit) -> Path:
+    with np.load(src, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    edit(arrays)
+    np.savez(dst, **arrays)
+    return dst
+
+
+def test_malformed_files_give_clear_errors(tmp_path):
+    path, _ = _save_small_policy(tmp_path)
+    base = PendulumPD()
+
+    def set_meta(**changes):
+        def edit(arrays):
+            meta = json.loads(str(arrays["metadata"]))
+            meta.update(changes)
+            arrays["metadata"] = np.array(json.dumps(meta))
+
+        return edit
+
+    def drop_weight(arrays):
+        del arrays[next(k for k in arrays if k.startswith("param/"))]
+
+    def bad_shape(arrays):
+        key = next(k for k in arrays if k.startswith("param/") and arrays[k].ndim == 2)
+        arrays[key] = arrays[key][:, :-1]
+
+    def nan_weight(arrays):
+        key = next(k for k in arrays if k.startswith("param/") and arrays[k].ndim == 2)
+        arrays[key] = np.full_like(arrays[key], np.nan)
+
+    cases = {
+        "kind": (set_meta(kind="something_else"), "kind"),
+        "version": (set_meta(schema_version=99), "schema version 99"),
+        "algo": (set_meta(algo="dqn"), "algo"),
+        "scale": (set_meta(scale=-1.0), "scale"),
+        "missing": (drop_weight, "missing"),
+        "shape": (bad_shape, "shape"),
+        "nan": (nan_weight, "NaN"),
+        "meta": (lambda a: a.pop("metadata"), "metadata"),
+    }
+    for name, (edit, message) in cases.items():
+        bad = _rewrite(path, tmp_path / f"bad_{name}.npz", edit)
+        with pytest.raises(ResidualPolicyFormatError, match=message):
+            ResidualPolicy.load(bad, base=base)
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(ResidualPolicyFormatError, match="not a readable"):
+        ResidualPolicy.load(truncated, base=base)
+    with pytest.raises(ResidualPolicyFormatError, match="without its base"):
+        ResidualPolicy.load(path)  # saved without a base file
+    assert zipfile.is_zipfile(path)
+
+
+def test_load_any_policy_dispatches_on_kind(tmp_path):
+    path, _ = _save_small_policy(tmp_path)
+    with pytest.raises(ResidualPolicyFormatError, match="without its base"):
+        load_any_policy(path)  # reached ResidualPolicy.load
+    other = tmp_path / "other.npz"
+    np.savez(other, metadata=np.array(json.dumps({"kind": "mystery"})))
+    with pytest.raises(ResidualPolicyFormatError, match="unknown policy kind 'mystery'"):
+        load_any_policy(other)
+    with pytest.raises(FileNotFoundError):
+        load_any_policy(tmp_path / "nope.npz")
+
+
+def test_evaluate_stages_reports_return_without_stage_flags():
+    res = evaluate_stages(PendulumPD(), make_pendulum, seeds=[0, 1])
+    assert res["episodes"] == 2 and res["rates"] == {} and res["mean_length"] == 200
