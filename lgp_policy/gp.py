@@ -27,7 +27,13 @@ from numpy.typing import ArrayLike, NDArray
 from lgp_policy._validation import check_random_state, check_X, check_X_y
 from lgp_policy.kernels import Kernel, SquaredExponential, WhiteNoise
 
-__all__ = ["GaussianProcess", "NotPositiveDefiniteError", "default_kernel"]
+__all__ = [
+    "GaussianProcess",
+    "NotPositiveDefiniteError",
+    "default_kernel",
+    "fit_shared_hyperparameters",
+    "maximize_lml",
+]
 
 #: Relative jitter (times the mean diagonal of K_y) tried, in order, when Cholesky fails.
 JITTER_STEPS = (0.0, 1e-10, 1e-9, 1e-8, 1e-7, 1e-6)
@@ -70,6 +76,112 @@ def cholesky_with_jitter(K: NDArray[np.float64]) -> tuple[NDArray[np.float64], f
         "or raise its noise_level (and the lower noise_level_bounds), increase `alpha`, or "
         "check X for (near-)duplicate inputs when no noise term is used."
     )
+
+
+def _minimize(obj, theta0, bounds, optimizer: Optimizer, max_iter: int):
+    """Minimise ``obj(theta) -> (value, gradient)``; returns ``(theta, value)``."""
+    if callable(optimizer):
+        theta, val = optimizer(obj, theta0, bounds)
+        return np.asarray(theta, dtype=np.float64), float(val)
+    if optimizer == "L-BFGS-B":
+        res = scipy.optimize.minimize(
+            obj, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iter}
+        )
+        return res.x, float(res.fun)
+    if optimizer != "CG":
+        raise ValueError(
+            f"optimizer must be 'L-BFGS-B', 'CG', None or a callable, got {optimizer!r}"
+        )
+
+    # "CG": unconstrained conjugate gradient (the paper's choice); theta is clipped to the
+    # bounds and the gradient is zeroed where the clip is active.
+    def clipped(theta):
+        t = np.clip(theta, bounds[:, 0], bounds[:, 1])
+        val, grad = obj(t)
+        return val, np.where(t == theta, grad, 0.0)
+
+    res = scipy.optimize.minimize(
+        clipped, theta0, jac=True, method="CG", options={"maxiter": max_iter}
+    )
+    return np.clip(res.x, bounds[:, 0], bounds[:, 1]), float(res.fun)
+
+
+def maximize_lml(
+    lml: Callable[[NDArray[np.float64]], tuple[float, NDArray[np.float64]]],
+    theta0: ArrayLike,
+    bounds: NDArray[np.float64],
+    *,
+    optimizer: Optimizer = "L-BFGS-B",
+    n_restarts: int = 0,
+    random_state: int | np.random.Generator | None = None,
+    max_iter: int = 200,
+) -> NDArray[np.float64]:
+    """Maximise a log marginal likelihood ``lml(theta) -> (value, gradient)`` over ``theta``.
+
+    Runs ``optimizer`` from ``theta0`` and from ``n_restarts`` log-uniform draws within
+    ``bounds`` (from ``random_state``) and returns the best ``theta``, clipped to the bounds.
+    """
+    bounds = np.asarray(bounds, dtype=np.float64)
+
+    def obj(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        value, grad = lml(theta)
+        if not np.isfinite(value):
+            return 1e25, np.zeros_like(theta)
+        return -value, -grad
+
+    starts = [np.asarray(theta0, dtype=np.float64)]
+    if n_restarts > 0:
+        if not np.all(np.isfinite(bounds)):
+            raise ValueError("n_restarts > 0 needs finite kernel bounds")
+        rng = check_random_state(random_state)
+        starts += [rng.uniform(bounds[:, 0], bounds[:, 1]) for _ in range(n_restarts)]
+    best_theta, best_val = starts[0], np.inf
+    for start in starts:
+        theta, val = _minimize(
+            obj, np.clip(start, bounds[:, 0], bounds[:, 1]), bounds, optimizer, max_iter
+        )
+        if val < best_val:
+            best_theta, best_val = theta, val
+    return np.clip(best_theta, bounds[:, 0], bounds[:, 1])
+
+
+def fit_shared_hyperparameters(
+    gps: list[GaussianProcess],
+    *,
+    optimizer: Optimizer = "L-BFGS-B",
+    n_restarts: int = 0,
+    random_state: int | np.random.Generator | None = None,
+    max_iter: int = 200,
+    apply_to: list[GaussianProcess] | None = None,
+) -> NDArray[np.float64]:
+    """Learn one ``theta`` for several fitted GPs by maximising the sum of their Eq. (4).
+
+    ``gps`` must be fitted (any hyperparameters) with kernels of the same structure. The sum of
+    independent data sets' log marginal likelihoods is the likelihood of the product-of-experts
+    model of local GPs (Deisenroth & Ng 2015). The result is applied to ``gps`` and to
+    ``apply_to`` (default: none besides ``gps``) without further optimisation.
+
+    Returns:
+        the shared ``theta`` (log space).
+    """
+    kernel = gps[0].kernel_
+
+    def total(theta):
+        values, grads = zip(*(gp._lml(theta, eval_gradient=True) for gp in gps), strict=True)
+        return float(np.sum(values)), np.sum(grads, axis=0)
+
+    theta = maximize_lml(
+        total,
+        kernel.theta,
+        kernel.bounds,
+        optimizer=optimizer,
+        n_restarts=n_restarts,
+        random_state=random_state,
+        max_iter=max_iter,
+    )
+    for gp in [*gps, *(apply_to or [])]:
+        gp._set_theta(theta)
+    return theta
 
 
 class _Replicates:
@@ -229,57 +341,21 @@ class GaussianProcess:
             raise ValueError("alpha must be finite and non-negative")
 
     def _optimize_theta(self, kernel: Kernel) -> NDArray[np.float64]:
-        bounds = kernel.bounds
-
-        def obj(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-            lml, grad = self._lml(theta, eval_gradient=True)
-            if not np.isfinite(lml):
-                return 1e25, np.zeros_like(theta)
-            return -lml, -grad
-
-        starts = [kernel.theta]
-        if self.n_restarts > 0:
-            if not np.all(np.isfinite(bounds)):
-                raise ValueError("n_restarts > 0 needs finite kernel bounds")
-            rng = check_random_state(self.random_state)
-            starts += [rng.uniform(bounds[:, 0], bounds[:, 1]) for _ in range(self.n_restarts)]
-        best_theta, best_val = None, np.inf
-        for theta0 in starts:
-            theta, val = self._run_optimizer(
-                obj, np.clip(theta0, bounds[:, 0], bounds[:, 1]), bounds
-            )
-            if val < best_val:
-                best_theta, best_val = theta, val
-        if best_theta is None:  # every run failed: keep the initial hyperparameters
-            best_theta = kernel.theta
-        return np.clip(best_theta, bounds[:, 0], bounds[:, 1])
-
-    def _run_optimizer(self, obj, theta0, bounds):
-        if callable(self.optimizer):
-            theta, val = self.optimizer(obj, theta0, bounds)
-            return np.asarray(theta, dtype=np.float64), float(val)
-        if self.optimizer == "L-BFGS-B":
-            res = scipy.optimize.minimize(
-                obj,
-                theta0,
-                jac=True,
-                method="L-BFGS-B",
-                bounds=bounds,
-                options={"maxiter": self.max_iter},
-            )
-            return res.x, float(res.fun)
-
-        # "CG": unconstrained conjugate gradient (the paper's choice); theta is clipped to the
-        # bounds and the gradient is zeroed where the clip is active.
-        def clipped(theta):
-            t = np.clip(theta, bounds[:, 0], bounds[:, 1])
-            val, grad = obj(t)
-            return val, np.where(t == theta, grad, 0.0)
-
-        res = scipy.optimize.minimize(
-            clipped, theta0, jac=True, method="CG", options={"maxiter": self.max_iter}
+        return maximize_lml(
+            lambda theta: self._lml(theta, eval_gradient=True),
+            kernel.theta,
+            kernel.bounds,
+            optimizer=self.optimizer,
+            n_restarts=self.n_restarts,
+            random_state=self.random_state,
+            max_iter=self.max_iter,
         )
-        return np.clip(res.x, bounds[:, 0], bounds[:, 1]), float(res.fun)
+
+    def _set_theta(self, theta: ArrayLike) -> None:
+        """Use hyperparameters ``theta`` (log space) and refactorise; no optimisation."""
+        self._check_fitted()
+        self.kernel_.theta = theta
+        self._solve()
 
     # ----------------------------------------------------------- linear algebra
     def _noise_and_signal(self, kernel: Kernel, X: NDArray[np.float64], eval_gradient: bool):

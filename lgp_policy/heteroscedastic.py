@@ -19,6 +19,7 @@ Deviation, documented: the log of an average of ``m`` squared Gaussian residuals
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,10 +27,16 @@ import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
 from lgp_policy._validation import check_random_state, check_X, check_X_y
-from lgp_policy.gp import GaussianProcess, Optimizer, default_kernel
+from lgp_policy.gp import GaussianProcess, Optimizer, default_kernel, fit_shared_hyperparameters
 from lgp_policy.kernels import Kernel, SquaredExponential, WhiteNoise
 
-__all__ = ["HeteroscedasticGP", "signal_kernel"]
+__all__ = [
+    "EMResult",
+    "HeteroscedasticGP",
+    "default_noise_kernel",
+    "most_likely_em",
+    "signal_kernel",
+]
 
 
 def signal_kernel(kernel: Kernel) -> Kernel:
@@ -46,6 +53,119 @@ def signal_kernel(kernel: Kernel) -> Kernel:
 def _log_mean_chi2_bias(m: NDArray[np.float64]) -> NDArray[np.float64]:
     """``E[log(chi2_m / m)] = psi(m/2) - log(m/2)``: bias of the log of a mean of m squares."""
     return scipy.special.digamma(m / 2.0) - np.log(m / 2.0)
+
+
+def default_noise_kernel() -> Kernel:
+    """``SquaredExponential(1, 1) + WhiteNoise(0.5)``: z-process kernel (log noise)."""
+    return SquaredExponential(1.0, 1.0) + WhiteNoise(0.5)
+
+
+@dataclass
+class EMResult:
+    """Output of :func:`most_likely_em`: one entry per data set in the lists."""
+
+    gps: list[GaussianProcess]
+    noise_gps: list[GaussianProcess]
+    noise_offsets: list[float]
+    homoscedastic_kernel: Kernel
+    n_iter: int
+    converged: bool
+
+
+def most_likely_em(
+    datasets: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    kernel: Kernel,
+    noise_kernel: Kernel,
+    *,
+    learn: bool = True,
+    optimizer: Optimizer = "L-BFGS-B",
+    n_restarts: int = 0,
+    max_em_iter: int = 10,
+    tol: float = 0.05,
+    n_samples: int | None = None,
+    collapse_replicates: bool = True,
+    max_iter: int = 200,
+    random_state: int | np.random.Generator | None = None,
+) -> EMResult:
+    """Most-likely heteroscedastic EM (Kersting et al. 2007) on one or more data sets.
+
+    With several data sets (the local models of :class:`~lgp_policy.local.LocalGP`) the
+    hyperparameters are shared: each learning step maximises the *sum* of the data sets' log
+    marginal likelihoods. Each data set's z-process has its own constant mean (the mean of its
+    log-noise targets). ``learn=False`` keeps ``kernel`` and ``noise_kernel`` as given.
+
+    Args:
+        datasets: ``[(X (n_i, d), y (n_i,)), ...]``, targets already standardised.
+        kernel: homoscedastic kernel of step 1 (with a WhiteNoise term).
+        noise_kernel: z-process kernel.
+    """
+    rng = check_random_state(random_state)
+    opt = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
+
+    def make(k: Kernel, alpha: Any = 0.0) -> GaussianProcess:
+        return GaussianProcess(
+            k,
+            optimizer=None,
+            normalize_y=False,
+            alpha=alpha,
+            collapse_replicates=collapse_replicates,
+        )
+
+    # Step 1: homoscedastic GP G1.
+    gps = [make(kernel).fit(X, y) for X, y in datasets]
+    if learn:
+        fit_shared_hyperparameters(gps, random_state=rng, **opt)
+    homoscedastic_kernel = gps[0].kernel_.clone()
+    groups = []
+    for X, _ in datasets:
+        U, inverse, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
+        counts = counts.astype(np.float64)
+        groups.append((U, inverse.reshape(-1), counts, _log_mean_chi2_bias(counts)))
+    log_r = [np.log(gp.noise_variance(X)) for gp, (X, _) in zip(gps, datasets, strict=True)]
+    sig = signal_kernel(homoscedastic_kernel)
+    zk = noise_kernel.clone()
+    converged, n_iter = False, 0
+    noise_gps: list[GaussianProcess] = []
+    offsets: list[float] = []
+    for _ in range(max_em_iter):
+        n_iter += 1
+        # Step 2: expected squared residual under the posterior of f, averaged over replicates.
+        targets = []
+        for gp, (X, y), (U, inverse, counts, bias) in zip(gps, datasets, groups, strict=True):
+            mu, std_f = gp.predict_latent(X)
+            if n_samples is None:
+                e = (y - mu) ** 2 + std_f**2
+            else:
+                f = mu[:, None] + std_f[:, None] * rng.standard_normal((X.shape[0], n_samples))
+                e = np.mean((y[:, None] - f) ** 2, axis=1)
+            e_u = np.bincount(inverse, weights=e, minlength=U.shape[0]) / counts
+            targets.append(np.log(np.maximum(e_u, 1e-300)) - bias)
+        # Step 3: z-process G2 on the log noise.
+        offsets = [float(np.mean(z)) for z in targets]
+        noise_gps = [
+            make(zk).fit(g[0], z - off) for g, z, off in zip(groups, targets, offsets, strict=True)
+        ]
+        if learn:
+            fit_shared_hyperparameters(noise_gps, random_state=rng, **opt)
+            zk = noise_gps[0].kernel_.clone()
+        new_log_r = [
+            zgp.predict(g[0])[g[1]] + off
+            for zgp, g, off in zip(noise_gps, groups, offsets, strict=True)
+        ]
+        # Step 4: GP with R = diag(r(x_i)), Eq. (5).
+        gps = [
+            make(sig, alpha=np.exp(lr)).fit(X, y)
+            for lr, (X, y) in zip(new_log_r, datasets, strict=True)
+        ]
+        if learn:
+            fit_shared_hyperparameters(gps, random_state=rng, **opt)
+            sig = gps[0].kernel_.clone()
+        change = max(float(np.max(np.abs(a - b))) for a, b in zip(new_log_r, log_r, strict=True))
+        log_r = new_log_r
+        if change < tol:
+            converged = True
+            break
+    return EMResult(gps, noise_gps, offsets, homoscedastic_kernel, n_iter, converged)
 
 
 class HeteroscedasticGP:
@@ -167,45 +287,44 @@ class HeteroscedasticGP:
             self._y_mean, self._y_std = 0.0, 1.0
         yn = (y - self._y_mean) / self._y_std
         kernel = default_kernel() if self.kernel is None else self.kernel
-        noise_kernel = (
-            SquaredExponential(1.0, 1.0) + WhiteNoise(0.5)
-            if self.noise_kernel is None
-            else self.noise_kernel
+        noise_kernel = default_noise_kernel() if self.noise_kernel is None else self.noise_kernel
+        result = most_likely_em(
+            [(X, yn)],
+            kernel,
+            noise_kernel,
+            learn=self.optimizer is not None,
+            optimizer=self.optimizer,
+            n_restarts=self.n_restarts,
+            max_em_iter=self.max_em_iter,
+            tol=self.tol,
+            n_samples=self.n_samples,
+            collapse_replicates=self.collapse_replicates,
+            max_iter=self.max_iter,
+            random_state=rng,
         )
-        # Step 1: homoscedastic GP G1.
-        gp = self._gp(kernel, seed=rng).fit(X, yn)
-        U, inverse, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
-        inverse = inverse.reshape(-1)
-        counts = counts.astype(np.float64)
-        bias = _log_mean_chi2_bias(counts)
-        log_r = np.log(gp.noise_variance(X))
-        noise_gp = None
-        self.converged_ = False
-        self.n_iter_ = 0
-        for _ in range(self.max_em_iter):
-            self.n_iter_ += 1
-            # Step 2: expected squared residual under the posterior of f.
-            mu, std_f = gp.predict_latent(X)
-            if self.n_samples is None:
-                e = (yn - mu) ** 2 + std_f**2
-            else:
-                f = mu[:, None] + std_f[:, None] * rng.standard_normal((X.shape[0], self.n_samples))
-                e = np.mean((yn[:, None] - f) ** 2, axis=1)
-            e_u = np.bincount(inverse, weights=e, minlength=U.shape[0]) / counts
-            z = np.log(np.maximum(e_u, 1e-300)) - bias
-            # Step 3: z-process G2 on the log noise (warm start from the last iteration).
-            nk = noise_kernel if noise_gp is None else noise_gp.kernel_
-            noise_gp = self._gp(nk, normalize_y=True, seed=rng).fit(U, z)
-            new_log_r = noise_gp.predict(U)[inverse]
-            # Step 4: GP with R = diag(r(x_i)), Eq. (5).
-            gp = self._gp(signal_kernel(gp.kernel_), alpha=np.exp(new_log_r), seed=rng).fit(X, yn)
-            change = float(np.max(np.abs(new_log_r - log_r)))
-            log_r = new_log_r
-            if change < self.tol:
-                self.converged_ = True
-                break
-        self.gp_ = gp
-        self.noise_gp_ = noise_gp
+        self._set_state(result, 0)
+
+    def _set_state(self, result: EMResult, index: int) -> None:
+        self.gp_ = result.gps[index]
+        self.noise_gp_ = result.noise_gps[index]
+        self.noise_offset_ = float(result.noise_offsets[index])
+        self.homoscedastic_kernel_ = result.homoscedastic_kernel
+        self.n_iter_ = result.n_iter
+        self.converged_ = result.converged
+
+    @classmethod
+    def _from_em(
+        cls, result: EMResult, index: int, X, y, y_mean: float, y_std: float, **params: Any
+    ) -> HeteroscedasticGP:
+        """A fitted instance from group EM output (used by LocalGP)."""
+        model = cls(**params)
+        model.n_features_in_ = X.shape[1]
+        model.X_train_, model.y_train_ = X, y
+        model._single_target = True
+        model.estimators_ = None
+        model._y_mean, model._y_std = y_mean, y_std
+        model._set_state(result, index)
+        return model
 
     # ---------------------------------------------------------------- inference
     def _check_fitted(self) -> None:
@@ -219,7 +338,7 @@ class HeteroscedasticGP:
         return np.stack(outs, axis=1)
 
     def _log_noise_normalized(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
-        return self.noise_gp_.predict(X)
+        return self.noise_gp_.predict(X) + self.noise_offset_
 
     def _predict_normalized(self, X: NDArray[np.float64]):
         """Latent mean ``(n,)``, latent variance ``(n,)`` and r(x) ``(n,)``, normalised units."""

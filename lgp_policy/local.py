@@ -15,11 +15,17 @@ this puts the replicates of all demonstrations at one time step into the same mo
 the models contiguous time windows. ``order="given"`` runs Algorithm 1 in the data's order as in
 the paper.
 
-Hyperparameters. ``hyperparameters="local"`` (the paper's choice, Sec. IV: "individual
-parameterization and optimization"): every local model maximises its own log marginal likelihood,
-starting from ``kernel``. ``hyperparameters="fixed"``: all local models use ``kernel`` as given.
-The targets are standardised once globally (``normalize_y``), and each local model subtracts the
-mean of its own targets (a constant prior mean per model).
+Hyperparameters. ``hyperparameters="shared"`` (default): one set of kernel (and z-process)
+hyperparameters for all local models, learnt by maximising the *sum* of the local models' log
+marginal likelihoods (the product-of-experts likelihood, Deisenroth & Ng 2015) over an evenly
+spread subset of at most ``n_shared_models`` local models, so that learning costs the same for any
+``n``; every local model then runs with them fixed. ``hyperparameters="local"`` (the paper's
+choice, Sec. IV: "individual parameterization and optimization"): every local model maximises its
+own log marginal likelihood from ``kernel``; with narrow local windows (many points, small
+``max_points``) the individual estimates become unreliable (a window shorter than a length scale
+cannot identify it), which is why it is not the default. ``hyperparameters="fixed"``: ``kernel``
+as given. The targets are standardised once globally (``normalize_y``), so every local model has
+the same zero-mean prior as the global GP.
 
 Combination (Algorithm 2). Local *latent* (noise-free) predictions ``N(mu_l, v_l)`` are combined
 and the noise ``r(x)`` is added afterwards. Multiplying the noisy predictive distributions instead
@@ -31,7 +37,9 @@ that behaviour for comparison). Rules:
   ``beta_l = (log s_l^2 - log v_l) / 2``, ``s_l^2`` the model's prior variance;
 * ``"nearest"``: moment-matched mixture of the models, weights ``pi_l ~ w_l(x) / v_l(x)``.
 
-The noise is ``r(x) = sum_l rho_l(x) r_l(x)`` with ``rho_l = w_l / sum_k w_k``.
+The noise is ``r(x) = sum_l rho_l(x) r_l(x)`` with ``rho_l`` proportional to the precision a model
+gains over its prior at ``x``, ``1/v_l - 1/s_l^2`` (zero for models without data near ``x``); far
+from all data ``rho_l`` is proportional to ``w_l``.
 """
 
 from __future__ import annotations
@@ -43,13 +51,26 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import logsumexp
 
 from lgp_policy._validation import check_random_state, check_X, check_X_y
-from lgp_policy.gp import GaussianProcess, Optimizer, default_kernel
-from lgp_policy.heteroscedastic import HeteroscedasticGP, signal_kernel
+from lgp_policy.gp import (
+    GaussianProcess,
+    Optimizer,
+    default_kernel,
+    fit_shared_hyperparameters,
+)
+from lgp_policy.heteroscedastic import (
+    HeteroscedasticGP,
+    default_noise_kernel,
+    most_likely_em,
+    signal_kernel,
+)
 from lgp_policy.kernels import Kernel, SquaredExponential
 
 __all__ = ["COMBINE_RULES", "LocalGP"]
 
 COMBINE_RULES = ("product", "rbcm", "nearest")
+
+#: Test points farther than this many length scales from a model's data skip that model.
+SKIP_DISTANCE = 9.0
 
 
 class LocalGP:
@@ -66,7 +87,8 @@ class LocalGP:
         combine: ``"product"`` (Eqs. 8-9), ``"rbcm"`` or ``"nearest"`` (see module docstring).
         combine_noisy: combine the noisy predictive distributions (the known trap; for
             comparison only).
-        hyperparameters: ``"local"`` (each model optimises its own) or ``"fixed"``.
+        hyperparameters: ``"shared"`` (default), ``"local"`` or ``"fixed"`` (module docstring).
+        n_shared_models: most local models used to learn shared hyperparameters.
         order: ``"sorted"`` or ``"given"``: the order Algorithm 1 visits the points in.
         noise_kernel: z-process kernel of heteroscedastic local models.
         optimizer, n_restarts, max_em_iter: passed to the local models.
@@ -76,8 +98,8 @@ class LocalGP:
     Attributes:
         centers_: ``(n_models, n_features)`` centres in input units.
         assignments_: ``(n_samples,)`` index of the model each training point belongs to.
-        models_: the fitted local models (targets in globally standardised units, minus
-            ``offsets_``).
+        models_: the fitted local models (:class:`GaussianProcess` or
+            :class:`HeteroscedasticGP`), fitted to globally standardised targets.
     """
 
     def __init__(
@@ -89,7 +111,8 @@ class LocalGP:
         local_model: str = "heteroscedastic",
         combine: str = "nearest",
         combine_noisy: bool = False,
-        hyperparameters: str = "local",
+        hyperparameters: str = "shared",
+        n_shared_models: int = 8,
         order: str = "sorted",
         noise_kernel: Kernel | None = None,
         optimizer: Optimizer = "L-BFGS-B",
@@ -105,6 +128,7 @@ class LocalGP:
         self.combine = combine
         self.combine_noisy = combine_noisy
         self.hyperparameters = hyperparameters
+        self.n_shared_models = n_shared_models
         self.order = order
         self.noise_kernel = noise_kernel
         self.optimizer = optimizer
@@ -124,6 +148,7 @@ class LocalGP:
                 "combine",
                 "combine_noisy",
                 "hyperparameters",
+                "n_shared_models",
                 "order",
                 "noise_kernel",
                 "optimizer",
@@ -145,9 +170,14 @@ class LocalGP:
             )
         if self.combine not in COMBINE_RULES:
             raise ValueError(f"combine must be one of {COMBINE_RULES}, got {self.combine!r}")
-        if self.hyperparameters not in ("local", "fixed"):
+        if self.hyperparameters not in ("shared", "local", "fixed"):
             raise ValueError(
-                f"hyperparameters must be 'local' or 'fixed', got {self.hyperparameters!r}"
+                "hyperparameters must be 'shared', 'local' or 'fixed', "
+                f"got {self.hyperparameters!r}"
+            )
+        if not isinstance(self.n_shared_models, (int, np.integer)) or self.n_shared_models < 1:
+            raise ValueError(
+                f"n_shared_models must be a positive int, got {self.n_shared_models!r}"
             )
         if self.order not in ("sorted", "given"):
             raise ValueError(f"order must be 'sorted' or 'given', got {self.order!r}")
@@ -211,28 +241,11 @@ class LocalGP:
         return centre_arr[:n_models].copy(), assignments
 
     # ---------------------------------------------------------------- fitting
-    def _make_model(self, kernel: Kernel, seed: np.random.Generator):
-        optimizer = None if self.hyperparameters == "fixed" else self.optimizer
-        if self.local_model == "exact":
-            return GaussianProcess(
-                kernel,
-                optimizer=optimizer,
-                n_restarts=self.n_restarts,
-                normalize_y=False,
-                random_state=seed,
-            )
-        return HeteroscedasticGP(
-            kernel,
-            noise_kernel=self.noise_kernel,
-            optimizer=optimizer,
-            n_restarts=self.n_restarts,
-            normalize_y=False,
-            max_em_iter=self.max_em_iter,
-            random_state=seed,
-        )
-
     def fit(self, X: ArrayLike, y: ArrayLike) -> LocalGP:
-        """Cluster (Algorithm 1) and fit one GP per cluster. Returns ``self``."""
+        """Cluster (Algorithm 1) and fit one GP per cluster. Returns ``self``.
+
+        ``X (n_samples, n_features)``, ``y (n_samples,)`` or ``(n_samples, n_targets)``.
+        """
         X, y = check_X_y(X, y)
         self._check_params()
         kernel = default_kernel() if self.kernel is None else self.kernel
@@ -248,59 +261,168 @@ class LocalGP:
         Yn = (Y - self._y_mean) / self._y_std
         self.X_train_, self.y_train_ = X, y
         self.n_features_in_ = X.shape[1]
-        self.centers_, self.assignments_ = self._assign(X)
+        self.centers_, self.assignments_ = self._assign(X)  # Algorithm 1, lines 1-21
         rng = check_random_state(self.random_state)
-        self.models_ = []
-        offsets = []
-        for l in range(self.centers_.shape[0]):
-            idx = np.flatnonzero(self.assignments_ == l)
-            Yl = Yn[idx]
-            off = Yl.mean(axis=0)
-            target = (Yl - off)[:, 0] if self._single_target else Yl - off
+        n_models = self.centers_.shape[0]
+        order = np.argsort(self.assignments_, kind="stable")
+        splits = np.cumsum(np.bincount(self.assignments_, minlength=n_models))[:-1]
+        index_sets = []
+        for idx in np.split(order, splits):
             if idx.shape[0] < 2:  # a lone point: duplicate it (an exact replicate)
                 idx = np.repeat(idx, 2)
-                target = np.repeat(target, 2, axis=0)
-            self.models_.append(self._make_model(kernel, rng).fit(X[idx], target))
-            offsets.append(off)
-        self.offsets_ = np.asarray(offsets)  # (n_models, n_targets), standardised units
+            index_sets.append(idx)
+        self._index_sets = index_sets
+        # Algorithm 1, lines 22-25: one GP per local data set.
+        if self.local_model == "exact":
+            self.models_ = self._fit_exact(kernel, X, Yn, index_sets, rng)
+        else:
+            if not self._single_target:
+                raise ValueError(
+                    "local_model='heteroscedastic' needs a 1-D y (one noise process per output); "
+                    "fit one LocalGP per column"
+                )
+            self.models_ = self._fit_heteroscedastic(kernel, X, Yn[:, 0], index_sets, rng)
+        self._prepare_prediction()
         return self
 
+    def _shared_subset(self, n_models: int) -> NDArray[np.int64]:
+        """Local models whose data learn the shared hyperparameters (evenly spread)."""
+        k = min(n_models, self.n_shared_models)
+        return np.unique(np.round(np.linspace(0, n_models - 1, k)).astype(np.int64))
+
+    def _fit_exact(self, kernel, X, Yn, index_sets, rng) -> list[GaussianProcess]:
+        target = (lambda idx: Yn[idx, 0]) if self._single_target else (lambda idx: Yn[idx])
+        local_opt = self.optimizer if self.hyperparameters == "local" else None
+        models = [
+            GaussianProcess(
+                kernel,
+                optimizer=local_opt,
+                n_restarts=self.n_restarts,
+                normalize_y=False,
+                random_state=rng,
+            ).fit(X[idx], target(idx))
+            for idx in index_sets
+        ]
+        if self.hyperparameters == "shared" and self.optimizer is not None:
+            subset = self._shared_subset(len(models))
+            fit_shared_hyperparameters(
+                [models[i] for i in subset],
+                optimizer=self.optimizer,
+                n_restarts=self.n_restarts,
+                random_state=rng,
+                apply_to=[m for i, m in enumerate(models) if i not in set(subset)],
+            )
+        return models
+
+    def _fit_heteroscedastic(self, kernel, X, yn, index_sets, rng) -> list[HeteroscedasticGP]:
+        noise_kernel = default_noise_kernel() if self.noise_kernel is None else self.noise_kernel
+        datasets = [(X[idx], yn[idx]) for idx in index_sets]
+        em = {
+            "optimizer": self.optimizer,
+            "n_restarts": self.n_restarts,
+            "max_em_iter": self.max_em_iter,
+            "random_state": rng,
+        }
+        params = {
+            "noise_kernel": noise_kernel,
+            "optimizer": None,
+            "normalize_y": False,
+            "max_em_iter": self.max_em_iter,
+        }
+        if self.hyperparameters == "shared" and self.optimizer is not None:
+            # Learn the signal, noise and z-process hyperparameters once, on a fixed-size subset
+            # of the local models (sum of their LMLs), then run every model's EM with them fixed.
+            subset = self._shared_subset(len(datasets))
+            learned = most_likely_em([datasets[i] for i in subset], kernel, noise_kernel, **em)
+            kernel = learned.homoscedastic_kernel
+            noise_kernel = learned.noise_gps[0].kernel_
+            params["noise_kernel"] = noise_kernel
+        models = []
+        for Xl, yl in datasets:
+            if self.hyperparameters == "local" and self.optimizer is not None:
+                result = most_likely_em([(Xl, yl)], kernel, noise_kernel, **em)
+            else:
+                result = most_likely_em(
+                    [(Xl, yl)], kernel, noise_kernel, **{**em, "optimizer": None}, learn=False
+                )
+            models.append(
+                HeteroscedasticGP._from_em(result, 0, Xl, yl, 0.0, 1.0, kernel=kernel, **params)
+            )
+        return models
+
     # ------------------------------------------------------------- Algorithm 2
+    def _prepare_prediction(self) -> None:
+        """Bounding boxes and length scales that let prediction skip far-away models."""
+        self._boxes = np.stack(
+            [
+                np.stack([self.X_train_[idx].min(axis=0), self.X_train_[idx].max(axis=0)])
+                for idx in self._index_sets
+            ]
+        )  # (L, 2, n_features)
+        self._skip_scale = []
+        for model in self.models_:
+            k = _latent_model(model).kernel_
+            k = signal_kernel(k)
+            self._skip_scale.append(
+                np.asarray(k.length_scale) if isinstance(k, SquaredExponential) else None
+            )
+
     def _local_predictions(self, X: NDArray[np.float64]):
-        """Per model: latent mean, latent var, noise var, prior var; each (L, n, n_targets)."""
+        """Per model: latent mean, latent var, noise var, prior var; each (L, n, n_targets).
+
+        A model whose training inputs are all more than ``SKIP_DISTANCE`` length scales away
+        from a test point predicts its prior there (``k(x*, X_l) < exp(-SKIP_DISTANCE^2 / 2)``
+        relative, i.e. below 1e-19): it is not evaluated, which keeps prediction near-linear.
+        """
         L, n, t = len(self.models_), X.shape[0], self._y_mean.shape[0]
-        mu = np.empty((L, n, t))
+        mu = np.zeros((L, n, t))
         var = np.empty((L, n, t))
         noise = np.empty((L, n, t))
         prior = np.empty((L, n, t))
         for l, model in enumerate(self.models_):
-            m, s = model.predict_latent(X)
-            mu[l] = m.reshape(n, -1) + self.offsets_[l]
-            var[l] = (s**2).reshape(n, -1)
+            prior_l = _prior_variance(model, X).reshape(n, -1)
+            prior[l] = prior_l
+            var[l] = prior_l
             noise[l] = model.noise_variance(X).reshape(n, -1)
-            prior[l] = _prior_variance(model, X).reshape(n, -1)
+            ls = self._skip_scale[l]
+            if ls is None:
+                near = np.ones(n, dtype=bool)
+            else:
+                lo, hi = self._boxes[l]
+                gap = np.maximum(np.maximum(lo - X, X - hi), 0.0) / ls
+                near = np.sum(gap**2, axis=1) < SKIP_DISTANCE**2
+            if not np.any(near):
+                continue
+            m, s = model.predict_latent(X[near])
+            mu[l, near] = m.reshape(m.shape[0], -1)
+            var[l, near] = (s**2).reshape(m.shape[0], -1)
         return mu, np.maximum(var, 1e-12), noise, prior
 
     def _combine(self, X: NDArray[np.float64]):
-        mu, var, noise, prior = self._local_predictions(X)
+        mu, var, noise, prior = self._local_predictions(X)  # Algorithm 2, lines 1-6
         logw = self._weights(X, self.centers_).T[:, :, None]  # (L, n, 1)
-        rho = np.exp(logw - logsumexp(logw, axis=0, keepdims=True))
-        r = np.sum(rho * noise, axis=0)  # noise r(x), added after combining
+        # Noise r(x), added after combining: the local noise functions weighted by how much each
+        # model knows about f(x) (its precision gain over the prior); far from all data, by w.
+        gain = np.maximum(1.0 / var - 1.0 / prior, 0.0)
+        total = np.sum(gain, axis=0, keepdims=True)
+        rho_w = np.exp(logw - logsumexp(logw, axis=0, keepdims=True))
+        rho = np.where(
+            total > 1e-9 * np.max(1.0 / prior, axis=0), gain / np.maximum(total, 1e-300), rho_w
+        )
+        r = np.sum(rho * noise, axis=0)
         if self.combine_noisy:
             var = var + noise
             prior = prior + noise
-        if self.combine == "product":  # Eqs. (8)-(9)
+        if self.combine == "product":  # Algorithm 2, line 7; Eqs. (8)-(9)
             prec = np.sum(1.0 / var, axis=0)
             mean = np.sum(mu / var, axis=0) / prec
             v = 1.0 / prec
         elif self.combine == "rbcm":
             beta = 0.5 * (np.log(prior) - np.log(var))
-            prior_var = np.sum(rho * prior, axis=0)
-            prior_mean = np.sum(rho * self.offsets_[:, None, :], axis=0)
-            prior_w = 1.0 - np.sum(beta, axis=0)
-            prec = np.sum(beta / var, axis=0) + prior_w / prior_var
-            prec = np.maximum(prec, np.max(1.0 / var, axis=0) * 1e-3)
-            mean = (np.sum(beta * mu / var, axis=0) + prior_w * prior_mean / prior_var) / prec
+            prior_var = np.sum(rho_w * prior, axis=0)
+            prec = np.sum(beta / var, axis=0) + (1.0 - np.sum(beta, axis=0)) / prior_var
+            prec = np.maximum(prec, 1.0 / prior_var)
+            mean = np.sum(beta * mu / var, axis=0) / prec
             v = 1.0 / prec
         else:  # "nearest": moment-matched mixture, weights w_l / v_l
             logpi = logw - np.log(var)
@@ -350,10 +472,11 @@ class LocalGP:
         return float(sum(m.log_marginal_likelihood() for m in self.models_))
 
 
+def _latent_model(model) -> GaussianProcess:
+    return model.gp_ if isinstance(model, HeteroscedasticGP) else model
+
+
 def _prior_variance(model, X: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Latent prior variance k(x, x) of a local model at X, (n,) or (n, n_targets)."""
-    if isinstance(model, HeteroscedasticGP):
-        if model.estimators_:
-            return np.stack([_prior_variance(e, X) for e in model.estimators_], axis=1)
-        return model.gp_.kernel_.diag(X)
-    return model.kernel_.diag(X) - model._noise_level
+    """Latent prior variance k(x, x) of a local model at X, (n,)."""
+    gp = _latent_model(model)
+    return gp.kernel_.diag(X) - gp._noise_level
