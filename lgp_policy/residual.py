@@ -86,7 +86,7 @@ RL_EXTRA_HINT = 'pip install "gym-coffee[rl]"'
 ALGOS = ("sac", "td3", "ppo")
 
 STAGE_KEYS = ("cup_grasped", "cup_placed", "button_pressed", "is_success")
-"""``info`` flags reported per episode by :func:`evaluate_stages` (value at the episode's end)."""
+"""``info`` flags reported per episode by :func:`evaluate_stages` (true at any step)."""
 CURVE_SEED_OFFSET = 20_000
 """Held-out layouts for the learning curve: seeds ``CURVE_SEED_OFFSET + i``. They are disjoint
 from the demonstration seeds (``seed, seed + 1, ...``) and from ``gym-coffee evaluate``'s test
@@ -685,10 +685,9 @@ def _gp_policy_loader(path: str | os.PathLike[str]) -> Any:
     return GPDemonstrationPolicy.load(path)
 
 
-# Kinds the GP policy file may carry (see docs/notes-residual-requests.md); any of them loads with
-# GPDemonstrationPolicy.load.
-for _kind in ("lgp_policy.gp_demonstration_policy", "lgp_policy.policy", "gp_demonstration_policy"):
-    register_policy_kind(_kind, _gp_policy_loader)
+GP_POLICY_KIND = "lgp_policy.GPDemonstrationPolicy"
+"""``metadata["kind"]``/``["format"]`` of a GP policy file (``lgp_policy.policy.FORMAT_NAME``)."""
+register_policy_kind(GP_POLICY_KIND, _gp_policy_loader)
 
 
 def _read_metadata(path: Path) -> dict[str, Any]:
@@ -1140,22 +1139,23 @@ def evaluate_stages(
 ) -> dict[str, Any]:
     """Run one episode per seed and report per-stage success.
 
-    A stage counts if its ``info`` flag (:data:`STAGE_KEYS`, those the env reports) is true at
-    the episode's **last** step. ``cup_grasped`` and ``button_pressed`` latch and success ends the
-    episode, so for them this equals "reached at some step"; ``cup_placed`` is the env's "stands
-    under the spout now", so a residual that knocks the cup over after placing it loses the place
-    stage. Returns ``{"episodes", "rates": {flag: rate}, "mean_return",
-    "mean_length"}``.
+    A stage counts if its ``info`` flag (:data:`STAGE_KEYS`, those the env reports) was true at
+    any step of the episode, as in :func:`lgp_policy.evaluation.evaluate_policy_stages` (which
+    takes env ids; this one takes any env factory, e.g. a harder variant). Because ``cup_placed``
+    is the env's "stands under the spout now", the rates also hold ``cup_placed_at_end``: a
+    residual that knocks the cup over after it was placed loses that one. Returns ``{"episodes",
+    "rates": {flag: rate}, "mean_return", "mean_length"}``.
     """
     own = env is None
     env = env_fn() if own else env
     hits = {k: 0 for k in STAGE_KEYS}
+    placed_at_end = 0
     seen: set[str] = set()
     returns, lengths = [], []
     try:
         for seed in seeds:
             obs, info = env.reset(seed=int(seed))
-            final = {k: bool(info.get(k, False)) for k in STAGE_KEYS}
+            ever = {k: bool(info.get(k, False)) for k in STAGE_KEYS}
             state, start, ret, n = None, True, 0.0, 0
             done = False
             while not done:
@@ -1172,19 +1172,23 @@ def evaluate_stages(
                 for k in STAGE_KEYS:
                     if k in info:
                         seen.add(k)
-                        final[k] = bool(info[k])
+                        ever[k] = ever[k] or bool(info[k])
                 done = terminated or truncated
             for k in STAGE_KEYS:
-                hits[k] += final[k]
+                hits[k] += ever[k]
+            placed_at_end += bool(info.get("cup_placed", False))
             returns.append(ret)
             lengths.append(n)
     finally:
         if own:
             env.close()
     n_ep = max(len(seeds), 1)
+    rates = {k: hits[k] / n_ep for k in STAGE_KEYS if k in seen}
+    if "cup_placed" in seen:
+        rates["cup_placed_at_end"] = placed_at_end / n_ep
     return {
         "episodes": len(seeds),
-        "rates": {k: hits[k] / n_ep for k in STAGE_KEYS if k in seen},
+        "rates": rates,
         "mean_return": float(np.mean(returns)) if returns else float("nan"),
         "mean_length": float(np.mean(lengths)) if lengths else float("nan"),
     }

@@ -417,3 +417,88 @@ def test_load_any_policy_dispatches_on_kind(tmp_path):
 def test_evaluate_stages_reports_return_without_stage_flags():
     res = evaluate_stages(PendulumPD(), make_pendulum, seeds=[0, 1])
     assert res["episodes"] == 2 and res["rates"] == {} and res["mean_length"] == 200
+
+
+# ---------------------------------------------------------------------------- the coffee env
+class CoffeeSway:
+    """A cheap stateless base for the coffee env: joint targets swaying with time."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        from gym_coffee.env import OBS_SLICES
+        from gym_coffee.robot import NEUTRAL_JOINTS, action_from_targets
+
+        obs = np.atleast_2d(np.asarray(observation, dtype=np.float64))
+        t = obs[:, OBS_SLICES["time"]]
+        q = obs[:, OBS_SLICES["joint_pos"]]
+        target = NEUTRAL_JOINTS + 0.3 * np.sin(2.0 * t + np.arange(7))
+        a = action_from_targets(q, target, 0.04)
+        return (a if np.ndim(observation) == 2 else a[0]), state
+
+
+def make_coffee():
+    import gym_coffee  # noqa: F401
+
+    return gym.make("gym_coffee/CoffeeTask-v0")
+
+
+def coffee_gate(start=0.5):
+    from gym_coffee.env import OBS_SLICES
+
+    return PhaseGate(
+        start=start,
+        ramp=0.1,
+        source="observation",
+        time_index=OBS_SLICES["time"].start,
+        time_scale=4.0,
+    )
+
+
+def test_zero_residual_reproduces_base_trajectory_coffee():
+    base = CoffeeSway()
+    ref_obs, _ = rollout_base(make_coffee(), base, seed=11, n_steps=120)
+    env = ResidualWrapper(make_coffee(), base, gate=coffee_gate(0.3), residual_dims=range(7))
+    obs, _ = env.reset(seed=11)
+    got = [obs[: ref_obs.shape[1]]]
+    for _ in range(120):
+        obs, *_ = env.step(np.zeros(7, np.float32))
+        got.append(obs[: ref_obs.shape[1]])
+    np.testing.assert_array_equal(np.array(got), ref_obs)
+
+
+def test_tiny_finetune_on_the_coffee_env(tmp_path):
+    base = CoffeeSway()
+    res = finetune(
+        base,
+        make_coffee,
+        algo="sac",
+        total_env_steps=300,
+        seed=0,
+        gate=coffee_gate(0.5),
+        residual_dims=list(range(7)),
+        eval_seeds=[20_000],
+        eval_freq=300,
+        out_dir=tmp_path,
+        hyperparameters={"batch_size": 32},
+        progress=False,
+    )
+    assert res.env_steps >= 300
+    assert set(res.curve[0]["rates"]) >= {"cup_grasped", "button_pressed", "is_success"}
+    loaded = ResidualPolicy.load(tmp_path / "residual_policy.npz", base=base)
+    env = make_coffee()
+    obs = []
+    o, _ = env.reset(seed=20_001)
+    for _ in range(80):
+        obs.append(o)
+        o, *_ = env.step(base.predict(o)[0])
+    obs = np.array(obs)
+    np.testing.assert_array_equal(
+        loaded.predict(obs, deterministic=True)[0], res.policy.predict(obs, deterministic=True)[0]
+    )
+    assert loaded.predict(obs[0])[0].shape == (8,)
+
+
+def test_gp_policy_kind_matches_the_gp_policy_file_format():
+    from lgp_policy.policy import FORMAT_NAME
+    from lgp_policy.residual import GP_POLICY_KIND
+
+    assert GP_POLICY_KIND == FORMAT_NAME
