@@ -72,6 +72,7 @@ __all__ = [
     "evaluate_stages",
     "finetune",
     "gate_from_config",
+    "gp_policy_kind",
     "load_any_policy",
     "register_policy_kind",
     "require_rl",
@@ -685,9 +686,14 @@ def _gp_policy_loader(path: str | os.PathLike[str]) -> Any:
     return GPDemonstrationPolicy.load(path)
 
 
-GP_POLICY_KIND = "lgp_policy.GPDemonstrationPolicy"
-"""``metadata["kind"]``/``["format"]`` of a GP policy file (``lgp_policy.policy.FORMAT_NAME``)."""
-register_policy_kind(GP_POLICY_KIND, _gp_policy_loader)
+def gp_policy_kind() -> str | None:
+    """``metadata["kind"]``/``["format"]`` of a GP policy file: ``lgp_policy.policy.FORMAT_NAME``,
+    read from that module so the two never drift apart (``None`` if it cannot be imported)."""
+    try:
+        from lgp_policy.policy import FORMAT_NAME
+    except ImportError:
+        return None
+    return str(FORMAT_NAME)
 
 
 def _read_metadata(path: Path) -> dict[str, Any]:
@@ -715,7 +721,8 @@ def load_any_policy(path: str | os.PathLike[str]) -> Any:
     """Open a policy file of any kind this project writes, dispatching on its JSON ``kind``.
 
     Known kinds: ``"lgp_policy.residual_policy"`` (:meth:`ResidualPolicy.load`) and the GP
-    policy's (:meth:`GPDemonstrationPolicy.load`); more via :func:`register_policy_kind`.
+    policy's :func:`gp_policy_kind` (:meth:`GPDemonstrationPolicy.load`); more via
+    :func:`register_policy_kind`.
     """
     path = Path(path)
     meta = _read_metadata(path)
@@ -724,7 +731,10 @@ def load_any_policy(path: str | os.PathLike[str]) -> Any:
         return ResidualPolicy.load(path)
     if kind in _KIND_LOADERS:
         return _KIND_LOADERS[kind](path)
-    known = [RESIDUAL_POLICY_KIND, *_KIND_LOADERS]
+    gp_kind = gp_policy_kind()
+    if kind is not None and kind == gp_kind:
+        return _gp_policy_loader(path)
+    known = [RESIDUAL_POLICY_KIND, gp_kind, *_KIND_LOADERS]
     raise ResidualPolicyFormatError(
         f"{path}: unknown policy kind {kind!r} (metadata 'kind'/'format'); known kinds: {known}"
     )

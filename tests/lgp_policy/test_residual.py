@@ -497,8 +497,8 @@ def test_tiny_finetune_on_the_coffee_env(tmp_path):
     assert loaded.predict(obs[0])[0].shape == (8,)
 
 
-def test_gp_policy_kind_matches_the_gp_policy_file_format():
+def test_gp_policy_kind_is_read_from_the_gp_policy_module():
     from lgp_policy.policy import FORMAT_NAME
-    from lgp_policy.residual import GP_POLICY_KIND
+    from lgp_policy.residual import gp_policy_kind
 
-    assert GP_POLICY_KIND == FORMAT_NAME
+    assert gp_policy_kind() == FORMAT_NAME
