@@ -178,7 +178,20 @@ class DemonstrationEncoder:
             return _Empirical()
         from lgp_policy.kernels import SquaredExponential, WhiteNoise
 
-        kernel = SquaredExponential(1.0, self.length_scale) + WhiteNoise(self.noise_level)
+        # A length scale below the grid spacing lets the likelihood "explain" a sharp step by
+        # interpolating the grid points and reverting to the mean in between (measured on a
+        # gripper command): keep it above 1.5 grid steps.
+        min_ls = 1.5 / (self.n_steps - 1)
+        # The opposite degenerate optimum, "no signal, all noise" (variance at its lower bound,
+        # length scale > the whole phase range), flattens the heteroscedastic noise model too;
+        # a trajectory always has signal, so bound the variance (normalised outputs) and keep
+        # the length scale below half the phase range.
+        kernel = SquaredExponential(
+            1.0,
+            max(self.length_scale, min_ls),
+            variance_bounds=(1e-2, 1e2),
+            length_scale_bounds=(min_ls, 0.5),
+        ) + WhiteNoise(self.noise_level)
         kwargs = dict(self.model_kwargs or {})
         if self.model == "exact":
             from lgp_policy.gp import GaussianProcess

@@ -38,6 +38,7 @@ def synthetic_demos(n=4, seed=0):
         )
         w = _bump(s, *CONSTRAINT)[:, None]
         ee = (1 - w) * free + w * (cup + np.array([0.0, 0.0, 0.05]))
+        ee = ee + rng.normal(0.0, 0.002, ee.shape)  # 2 mm of sensor / human jitter
         q = np.column_stack([ee, np.sin(s) + rng.normal(0, 0.01, n_steps)])  # stand-in joints
         times.append(t)
         joints.append(q)

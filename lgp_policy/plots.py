@@ -1,0 +1,389 @@
+"""Figures in the style of the paper: Fig. 1 (heteroscedastic fit), Fig. 2 (input-space clustering),
+Fig. 4 (constraint profile per frame), Fig. 5 (a reproduction on a new layout).
+
+matplotlib is imported lazily with the ``Agg`` backend unless one is already chosen.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lgp_policy.encoding import JOINT_FRAME
+
+__all__ = [
+    "make_all",
+    "plot_clustering",
+    "plot_constraint_profile",
+    "plot_heteroscedastic",
+    "plot_reproduction",
+    "rollout_trace",
+]
+
+AXES = ("x", "y", "z")
+FRAME_COLORS = {"cup": "tab:blue", "machine": "tab:green", JOINT_FRAME: "tab:gray"}
+STAGE_LABELS = {"cup_grasped": "grasp", "cup_placed": "place", "button_pressed": "press"}
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    if matplotlib.get_backend().lower() not in ("agg", "pdf", "svg", "cairo"):
+        try:
+            matplotlib.use("Agg")
+        except Exception:  # pragma: no cover - a GUI session
+            pass
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _stage_lines(ax: Any, policy: Any) -> None:
+    phases = policy.constraints_.get("stage_phases", {}) if hasattr(policy, "constraints_") else {}
+    for stage, s in phases.items():
+        if s is None:
+            continue
+        ax.axvline(s, color="k", ls=":", lw=0.8)
+        ax.text(
+            s,
+            1.0,
+            STAGE_LABELS.get(stage, stage),
+            transform=ax.get_xaxis_transform(),
+            ha="center",
+            va="bottom",
+            fontsize=7,
+        )
+
+
+def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0) -> Path:
+    """Fig. 4: per object frame and axis, the demonstrations, the GP mean and a +-2 std band over
+    normalised time; tight intervals (the constraint report) are shaded and labelled, demonstrated
+    stage times are dotted lines."""
+    plt = _plt()
+    frames = [n for n in policy.frame_names_ if n != JOINT_FRAME]
+    if not frames:
+        frames = [JOINT_FRAME]
+    s = policy.phase_grid_
+    data = getattr(getattr(policy, "encoder_", None), "data_", None)
+    fig, axes = plt.subplots(
+        3, len(frames), figsize=(4.2 * len(frames), 7.0), sharex=True, squeeze=False
+    )
+    intervals = policy.constraints_.get("intervals", [])
+    for c, name in enumerate(frames):
+        color = FRAME_COLORS.get(name, "tab:red")
+        for r in range(3):
+            ax = axes[r, c]
+            if data is not None and name in data:
+                demo_s = np.linspace(0.0, 1.0, data[name].shape[1])
+                for k, demo in enumerate(data[name]):
+                    ax.plot(
+                        demo_s,
+                        demo[:, r],
+                        color="k",
+                        lw=0.7,
+                        alpha=0.6,
+                        label="demonstrations" if k == 0 else None,
+                    )
+            m, sd = policy.mean_[name][:, r], policy.std_[name][:, r]
+            ax.fill_between(
+                s, m - n_std * sd, m + n_std * sd, color=color, alpha=0.25, label=f"+-{n_std:g} std"
+            )
+            ax.plot(s, m, color=color, lw=2.0, label="GP mean")
+            for iv in intervals:
+                if iv["frame"] == name:
+                    ax.axvspan(
+                        iv["start"],
+                        iv["end"],
+                        color="orange",
+                        alpha=0.25,
+                        lw=0,
+                        label="tight" if r == 0 and iv is intervals[0] else None,
+                    )
+            if r == 0:
+                _stage_lines(ax, policy)
+                labels = [iv["label"] for iv in intervals if iv["frame"] == name]
+                ax.set_title(
+                    f"relative to {name}\n"
+                    + (
+                        "tight: " + "; ".join(lab.split(", ", 1)[1] for lab in labels)
+                        if labels
+                        else "no tight interval"
+                    ),
+                    fontsize=9,
+                )
+            ax.set_ylabel(f"{AXES[r]} (m)")
+            ax.grid(alpha=0.3)
+        axes[-1, c].set_xlabel("normalised time")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle(
+        "Learned policies relative to the objects' initial poses (cf. Fig. 4)", fontsize=10
+    )
+    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def rollout_trace(policy: Any, seed: int, *, env_id: str = "gym_coffee/CoffeeTask-v0") -> dict:
+    """Run ``policy`` closed loop on ``reset(seed=seed)`` and log what Fig. 5 needs.
+
+    Returns:
+        ``{"phase" (n,), "ee_pos" (n, 3), "joint_pos" (n, 7), "joint_std" (n, 7),
+        "targets": {frame: (n, 3) world targets}, "info": last info}``.
+    """
+    import gymnasium as gym
+
+    import gym_coffee  # noqa: F401
+    from lgp_policy.reproduction import frame_estimate
+
+    env = gym.make(env_id)
+    try:
+        obs, info = env.reset(seed=int(seed))
+        from gym_coffee.env import object_frames, obs_part
+
+        frames = object_frames(obs)
+        log: dict[str, list[Any]] = {"phase": [], "ee_pos": [], "joint_pos": [], "joint_std": []}
+        targets: dict[str, list[Any]] = {n: [] for n in policy.frame_names_ if n in frames}
+        done = False
+        while not done:
+            dist = policy.predict_distribution(obs)
+            s = float(dist.phase[0])
+            log["phase"].append(s)
+            log["ee_pos"].append(np.asarray(obs_part(obs, "ee_pos"), dtype=float))
+            log["joint_pos"].append(np.asarray(obs_part(obs, "joint_pos"), dtype=float))
+            log["joint_std"].append(dist.joint_std[0])
+            for n in targets:
+                m = np.array([np.interp(s, policy.phase_grid_, col) for col in policy.mean_[n].T])
+                o, R = frames[n]
+                targets[n].append(frame_estimate(o, R, m, np.ones(3)).position)
+            obs, _r, terminated, truncated, info = env.step(dist.action[0])
+            done = bool(terminated or truncated)
+    finally:
+        env.close()
+    out = {k: np.asarray(v) for k, v in log.items()}
+    out["targets"] = {n: np.asarray(v) for n, v in targets.items()}
+    out["info"] = dict(info)
+    return out
+
+
+def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
+    """Fig. 5: (a) task space, the targets of each object frame (dotted/dashed) and the resulting
+    end-effector path (solid red); (b) joint space, the reproduced joints with the remaining
+    +-2 std of the fused estimate and the joint-space GP mean."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    s = trace["phase"]
+    ax = axes[0]
+    styles = {"cup": ":", "machine": "--"}
+    for r, axis in enumerate(AXES):
+        for n, tgt in trace["targets"].items():
+            ax.plot(
+                s,
+                tgt[:, r],
+                ls=styles.get(n, "-."),
+                color=FRAME_COLORS.get(n, "tab:purple"),
+                lw=1.2,
+                label=f"policy rel. to {n}" if r == 0 else None,
+            )
+        ax.plot(
+            s,
+            trace["ee_pos"][:, r],
+            color="tab:red",
+            lw=2,
+            label="resulting policy" if r == 0 else None,
+        )
+        ax.text(s[-1], trace["ee_pos"][-1, r], f" {axis}", va="center", fontsize=9)
+    _stage_lines(ax, policy)
+    ax.set_xlabel("normalised time")
+    ax.set_ylabel("end-effector position, world (m)")
+    ax.set_title("(a) reproduction in task space", fontsize=10)
+    ax.legend(fontsize=8, loc="best")
+    ax.grid(alpha=0.3)
+    ax = axes[1]
+    q, qs = trace["joint_pos"], trace["joint_std"]
+    colors = plt.get_cmap("tab10")
+    for j in range(q.shape[1]):
+        ax.fill_between(
+            s, q[:, j] - 2 * qs[:, j], q[:, j] + 2 * qs[:, j], color=colors(j), alpha=0.2
+        )
+        ax.plot(s, q[:, j], color=colors(j), lw=1.5, label=f"q{j + 1}")
+        ax.plot(
+            policy.phase_grid_, policy.mean_[JOINT_FRAME][:, j], color=colors(j), lw=0.8, ls="--"
+        )
+    ax.set_xlabel("normalised time")
+    ax.set_ylabel("joint position (rad)")
+    ax.set_title("(b) reproduction in joint space (dashed: joint-space GP mean)", fontsize=10)
+    ax.legend(fontsize=7, ncol=4, loc="best")
+    ax.grid(alpha=0.3)
+    info = trace.get("info", {})
+    flags = ", ".join(f"{STAGE_LABELS[k]} {'yes' if info.get(k) else 'no'}" for k in STAGE_LABELS)
+    fig.suptitle(f"Reproduction on a new layout (cf. Fig. 5): {flags}", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _pick_dimension(encoder: Any) -> tuple[str, int]:
+    """The object-frame dimension whose spread varies most over time (clearly heteroscedastic)."""
+    best, best_ratio = (encoder.frame_names_[0], 0), -1.0
+    for name in encoder.frame_names_:
+        if name == JOINT_FRAME and len(encoder.frame_names_) > 1:
+            continue
+        spread = encoder.data_[name].std(axis=0)  # (T, d)
+        ratio = (spread.max(axis=0) + 1e-6) / (np.median(spread, axis=0) + 1e-6)
+        j = int(np.argmax(ratio))
+        if ratio[j] > best_ratio:
+            best, best_ratio = (name, j), float(ratio[j])
+    return best
+
+
+def _xy(encoder: Any, name: str, j: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    Y = encoder.data_[name][:, :, j]
+    return np.tile(encoder.phase_, Y.shape[0])[:, None], Y.reshape(-1)
+
+
+def plot_heteroscedastic(
+    encoder: Any, path: str | Path, *, frame: str | None = None, dim: int | None = None
+) -> Path:
+    """Fig. 1: a standard GP (a) and the heteroscedastic GP (b) on one dimension of the
+    demonstrations (+-2 std), and the heteroscedastic noise model r(x) (c)."""
+    from lgp_policy.gp import GaussianProcess
+    from lgp_policy.heteroscedastic import HeteroscedasticGP
+    from lgp_policy.kernels import SquaredExponential, WhiteNoise
+
+    plt = _plt()
+    if frame is None or dim is None:
+        frame, dim = _pick_dimension(encoder)
+    X, y = _xy(encoder, frame, dim)
+    xs = np.linspace(0.0, 1.0, 300)[:, None]
+    ls = getattr(encoder, "length_scale", 0.1)
+    kernel = SquaredExponential(1.0, ls) + WhiteNoise(0.1)
+    gp = GaussianProcess(kernel, random_state=0).fit(X, y)
+    hgp = HeteroscedasticGP(kernel, random_state=0).fit(X, y)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    label = f"{frame} {AXES[dim] if frame != JOINT_FRAME else f'dim {dim}'}"
+    for ax, model, title in (
+        (axes[0], gp, "(a) standard GP"),
+        (axes[1], hgp, "(b) heteroscedastic GP"),
+    ):
+        m, sd = model.predict(xs, return_std=True)
+        for k in range(encoder.data_[frame].shape[0]):
+            ax.plot(encoder.phase_, encoder.data_[frame][k, :, dim], color="k", lw=0.7)
+        ax.fill_between(xs[:, 0], m - 2 * sd, m + 2 * sd, color="tab:blue", alpha=0.25)
+        ax.plot(xs[:, 0], m, color="tab:blue", lw=2)
+        ax.set_title(f"{title}: {label}", fontsize=10)
+        ax.set_xlabel("normalised time")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("m")
+    r = hgp.noise_variance(xs)
+    axes[2].plot(
+        xs[:, 0], np.sqrt(r), color="tab:orange", lw=2, label="sqrt r(x) (heteroscedastic)"
+    )
+    axes[2].plot(
+        xs[:, 0],
+        np.sqrt(gp.noise_variance(xs)),
+        color="tab:gray",
+        ls="--",
+        label="noise std (standard GP)",
+    )
+    axes[2].plot(
+        encoder.phase_,
+        encoder.data_[frame][:, :, dim].std(axis=0),
+        color="k",
+        lw=0.8,
+        label="spread of the demonstrations",
+    )
+    axes[2].set_title("(c) noise model", fontsize=10)
+    axes[2].set_xlabel("normalised time")
+    axes[2].legend(fontsize=8)
+    axes[2].grid(alpha=0.3)
+    fig.suptitle("Standard vs heteroscedastic GP on the demonstrations (cf. Fig. 1)", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_clustering(
+    encoder: Any,
+    path: str | Path,
+    *,
+    frame: str | None = None,
+    dim: int | None = None,
+    threshold: float | None = None,
+) -> Path:
+    """Fig. 2: the input-space clustering of a ``LocalGP`` (Algorithm 1): data coloured by local
+    model, the centres (squares) and the weighting functions ``k(x, c_l)``."""
+    from lgp_policy.local import LocalGP
+
+    plt = _plt()
+    if frame is None or dim is None:
+        frame, dim = _pick_dimension(encoder)
+    model = encoder.models_[frame][dim]
+    if not hasattr(model, "centers_"):
+        from lgp_policy.kernels import SquaredExponential, WhiteNoise
+
+        X, y = _xy(encoder, frame, dim)
+        kernel = SquaredExponential(1.0, getattr(encoder, "length_scale", 0.1)) + WhiteNoise(0.1)
+        model = LocalGP(kernel, threshold=threshold or getattr(encoder, "threshold", 0.5)).fit(X, y)
+    X = np.asarray(model.X_train_ if hasattr(model, "X_train_") else _xy(encoder, frame, dim)[0])
+    y = np.asarray(model.y_train_ if hasattr(model, "y_train_") else _xy(encoder, frame, dim)[1])
+    X = X.reshape(len(X), -1)[:, 0]
+    y = y.reshape(len(y), -1)[:, 0]
+    assign = np.asarray(model.assignments_)
+    centers = np.asarray(model.centers_).reshape(-1)
+    ls = getattr(encoder, "length_scale", 0.1)
+    fig, ax = plt.subplots(figsize=(8, 4))
+    cmap = plt.get_cmap("tab10")
+    markers = "os^Dv<>ph*"
+    lo, hi = float(y.min()), float(y.max())
+    base = lo - 0.35 * (hi - lo + 1e-9)
+    xs = np.linspace(0.0, 1.0, 400)
+    for k in range(len(centers)):
+        sel = assign == k
+        ax.scatter(
+            X[sel],
+            y[sel],
+            s=6,
+            color=cmap(k % 10),
+            marker=markers[k % len(markers)],
+            label=f"model {k + 1} ({sel.sum()} pts)",
+        )
+        w = np.exp(-0.5 * ((xs - centers[k]) / ls) ** 2)
+        ax.plot(xs, base + w * 0.3 * (hi - lo + 1e-9), color=cmap(k % 10), lw=1)
+        ax.scatter([centers[k]], [base], marker="s", s=40, color=cmap(k % 10), edgecolor="k")
+    ax.set_xlabel("normalised time")
+    ax.set_ylabel(f"{frame} {AXES[dim] if frame != JOINT_FRAME else dim} (m)")
+    ax.set_title(f"Input-space clustering, {len(centers)} local models (cf. Fig. 2)", fontsize=10)
+    ax.legend(fontsize=7, ncol=3, loc="upper left", markerscale=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def make_all(policy: Any, demos: Any, out: str | Path, *, seed: int) -> dict[str, str]:
+    """Write all four figures into ``out``; returns ``{name: path}``."""
+    out = Path(out)
+    files = {"fig4_constraints": str(plot_constraint_profile(policy, out / "fig4_constraints.png"))}
+    trace = rollout_trace(policy, seed)
+    files["fig5_reproduction"] = str(
+        plot_reproduction(policy, trace, out / "fig5_reproduction.png")
+    )
+    encoder = getattr(policy, "encoder_", None)
+    if encoder is not None:
+        files["fig2_clustering"] = str(plot_clustering(encoder, out / "fig2_clustering.png"))
+        files["fig1_heteroscedastic"] = str(
+            plot_heteroscedastic(encoder, out / "fig1_heteroscedastic.png")
+        )
+    return files
