@@ -62,3 +62,117 @@ def test_fit_improves_lml(data, optimizer):
     fixed = GaussianProcess(_kernel(), optimizer=None).fit(X, y)
     fitted = GaussianProcess(_kernel(), optimizer=optimizer).fit(X, y)
     assert fitted.log_marginal_likelihood() > fixed.log_marginal_likelihood() + 1.0
+
+
+def test_replicates_collapsed_equal_dense_after_fitting(data):
+    X, y = data
+    a = GaussianProcess(_kernel(), collapse_replicates=True).fit(X, y)
+    b = GaussianProcess(_kernel(), collapse_replicates=False).fit(X, y)
+    assert a._data.X.shape[0] == 40 and b._data.X.shape[0] == 120  # the claim is tested
+    np.testing.assert_allclose(a.kernel_.theta, b.kernel_.theta, rtol=1e-5, atol=1e-6)
+    Xs = np.linspace(-1.0, 6.0, 31)[:, None]
+    b_fixed = GaussianProcess(a.kernel_, optimizer=None, collapse_replicates=False).fit(X, y)
+    pa, pb = a.predict(Xs, return_std=True), b_fixed.predict(Xs, return_std=True)
+    np.testing.assert_allclose(pa, pb, atol=1e-9)
+    np.testing.assert_allclose(a.predict_latent(Xs), b_fixed.predict_latent(Xs), atol=1e-9)
+    assert a.log_marginal_likelihood() == pytest.approx(b_fixed.log_marginal_likelihood(), abs=1e-8)
+
+
+def test_std_splits_into_latent_and_noise(data):
+    X, y = data
+    gp = GaussianProcess(_kernel()).fit(X, y)
+    Xs = np.linspace(0.0, 5.0, 9)[:, None]
+    mean, std = gp.predict(Xs, return_std=True)
+    mean_f, std_f = gp.predict_latent(Xs)
+    np.testing.assert_allclose(mean, mean_f)
+    np.testing.assert_allclose(std**2, std_f**2 + gp.noise_variance(Xs), rtol=1e-12)
+    assert np.all(std_f < std)
+    assert gp.noise_variance(Xs).shape == (9,)
+
+
+def test_interpolates_without_noise():
+    X = np.linspace(0.0, 3.0, 8)[:, None]
+    y = np.cos(2.0 * X[:, 0])
+    gp = GaussianProcess(SquaredExponential(1.0, 0.5), optimizer=None).fit(X, y)
+    mean, std = gp.predict(X, return_std=True)
+    np.testing.assert_allclose(mean, y, atol=1e-6)
+    assert np.all(std < 1e-3)
+
+
+def test_multi_target_shares_hyperparameters(data):
+    X, y = data
+    Y = np.column_stack([y, 3.0 * y + 1.0])
+    gp = GaussianProcess(_kernel()).fit(X, Y)
+    Xs = np.linspace(0.0, 5.0, 11)[:, None]
+    mean, std = gp.predict(Xs, return_std=True)
+    assert mean.shape == std.shape == gp.noise_variance(Xs).shape == (11, 2)
+    np.testing.assert_allclose(mean[:, 1], 3.0 * mean[:, 0] + 1.0, atol=1e-8)
+    np.testing.assert_allclose(std[:, 1], 3.0 * std[:, 0], rtol=1e-8)
+    single = GaussianProcess(gp.kernel_, optimizer=None).fit(X, y)
+    np.testing.assert_allclose(single.predict(Xs), mean[:, 0], atol=1e-10)
+
+
+def test_restarts_deterministic_and_no_worse(data):
+    X, y = data
+    runs = [GaussianProcess(_kernel(), n_restarts=2, random_state=3).fit(X, y) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].kernel_.theta, runs[1].kernel_.theta)
+    single = GaussianProcess(_kernel()).fit(X, y)
+    assert runs[0].log_marginal_likelihood() >= single.log_marginal_likelihood() - 1e-6
+
+
+class _Negative(SquaredExponential):
+    def __call__(self, X, Y=None, eval_gradient=False):
+        return -super().__call__(X, Y, eval_gradient)
+
+
+def test_not_positive_definite_names_the_remedy(data):
+    X, y = data
+    from lgp_policy.gp import NotPositiveDefiniteError
+
+    with pytest.raises(NotPositiveDefiniteError, match="WhiteNoise"):
+        GaussianProcess(_Negative(1.0, 1.0), optimizer=None).fit(X, y)
+
+
+def test_jitter_rescues_near_singular_matrix():
+    X = np.vstack([np.linspace(0, 1, 30)[:, None]] * 2)  # replicates, no noise term
+    y = np.tile(np.sin(np.linspace(0, 1, 30)), 2)
+    gp = GaussianProcess(SquaredExponential(1.0, 0.3), optimizer=None).fit(X, y)
+    assert gp.jitter_ > 0
+    np.testing.assert_allclose(gp.predict(X), y, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("X", "y", "match"),
+    [
+        (np.array([[0.0], [np.nan], [1.0]]), np.zeros(3), "X contains NaN"),
+        (np.array([[0.0], [1.0], [2.0]]), np.array([0.0, np.inf, 1.0]), "y contains NaN"),
+        (np.zeros((3, 1)), np.zeros(4), "mismatched lengths"),
+        (np.zeros(3), np.zeros(3), "X must be 2-D"),
+        (np.zeros((3, 1, 1)), np.zeros(3), "X must be 2-D"),
+        (np.zeros((3, 1)), np.zeros((3, 1, 1)), "y must have shape"),
+        (np.zeros((0, 1)), np.zeros(0), "X is empty"),
+        (np.zeros((1, 1)), np.zeros(1), "at least 2"),
+    ],
+)
+def test_bad_input_raises_value_error(X, y, match):
+    with pytest.raises(ValueError, match=match):
+        GaussianProcess(_kernel()).fit(X, y)
+
+
+def test_bad_arguments_raise(data):
+    X, y = data
+    with pytest.raises(ValueError, match="optimizer"):
+        GaussianProcess(optimizer="BFGS").fit(X, y)
+    with pytest.raises(ValueError, match="alpha"):
+        GaussianProcess(alpha=np.ones(3)).fit(X, y)
+    with pytest.raises(ValueError, match="alpha"):
+        GaussianProcess(alpha=-1.0).fit(X, y)
+    with pytest.raises(ValueError, match="n_restarts"):
+        GaussianProcess(n_restarts=-1).fit(X, y)
+    gp = GaussianProcess(_kernel(), optimizer=None).fit(X, y)
+    with pytest.raises(ValueError, match="features"):
+        gp.predict(np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="theta"):
+        gp.log_marginal_likelihood(np.zeros(5))
+    with pytest.raises(ValueError, match="not fitted"):
+        GaussianProcess().predict(np.zeros((2, 1)))

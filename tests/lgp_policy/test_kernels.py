@@ -1,0 +1,94 @@
+"""Kernels: values, log-space hyperparameters, analytic gradients, input checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import approx_fprime
+
+from lgp_policy.kernels import SquaredExponential, Sum, WhiteNoise
+
+
+@pytest.fixture
+def X():
+    return np.random.default_rng(0).uniform(-2.0, 2.0, (7, 2))
+
+
+KERNELS = [
+    SquaredExponential(1.7, 0.6),
+    SquaredExponential(0.8, [0.5, 2.0]),
+    WhiteNoise(0.3),
+    SquaredExponential(1.2, 0.9) + WhiteNoise(0.05),
+]
+
+
+def test_squared_exponential_value(X):
+    k = SquaredExponential(2.0, 0.7)
+    d2 = np.sum((X[:, None, :] - X[None, :, :]) ** 2, axis=2)
+    np.testing.assert_allclose(k(X), 2.0 * np.exp(-d2 / (2 * 0.7**2)), rtol=1e-12)  # Eq. (3)
+    ard = SquaredExponential(2.0, [0.7, 0.7])
+    np.testing.assert_allclose(ard(X), k(X), rtol=1e-12)
+
+
+def test_eq10_white_noise_only_on_the_training_set(X):
+    k = SquaredExponential(1.0, 1.0) + WhiteNoise(0.25)
+    np.testing.assert_allclose(k(X) - SquaredExponential(1.0, 1.0)(X), 0.25 * np.eye(7))
+    np.testing.assert_allclose(k(X, X[:3]), SquaredExponential(1.0, 1.0)(X, X[:3]))
+    np.testing.assert_allclose(k.diag(X), np.full(7, 1.25))
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=repr)
+def test_gradient_matches_finite_differences(kernel, X):
+    K, G = kernel(X, eval_gradient=True)
+    assert G.shape == (*K.shape, kernel.n_dims)
+    np.testing.assert_allclose(np.diag(K), kernel.diag(X), rtol=1e-12)
+    for i, j in [(0, 0), (1, 4), (6, 2)]:
+
+        def entry(theta, i=i, j=j):
+            return kernel.clone_with_theta(theta)(X)[i, j]
+
+        num = approx_fprime(kernel.theta, entry, 1e-7)
+        np.testing.assert_allclose(G[i, j], num, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=repr)
+def test_theta_is_log_and_round_trips(kernel):
+    theta = kernel.theta + 0.3
+    k2 = kernel.clone_with_theta(theta)
+    np.testing.assert_allclose(k2.theta, theta)
+    assert kernel.theta[0] == pytest.approx(theta[0] - 0.3)  # original untouched
+    assert kernel.bounds.shape == (kernel.n_dims, 2)
+    assert len(kernel.hyperparameter_names) == kernel.n_dims
+
+
+def test_sum_concatenates_theta():
+    k = SquaredExponential(2.0, 3.0) + WhiteNoise(0.5)
+    assert isinstance(k, Sum)
+    np.testing.assert_allclose(k.theta, np.log([2.0, 3.0, 0.5]))
+    assert [leaf.is_noise for leaf in k.leaves()] == [False, True]
+
+
+@pytest.mark.parametrize(
+    ("factory", "name"),
+    [
+        (lambda: SquaredExponential(0.0, 1.0), "variance"),
+        (lambda: SquaredExponential(-1.0, 1.0), "variance"),
+        (lambda: SquaredExponential(1.0, 0.0), "length_scale"),
+        (lambda: SquaredExponential(1.0, [1.0, -2.0]), "length_scale"),
+        (lambda: SquaredExponential(1.0, np.nan), "length_scale"),
+        (lambda: WhiteNoise(0.0), "noise_level"),
+        (lambda: WhiteNoise(np.inf), "noise_level"),
+        (
+            lambda: SquaredExponential(1.0, 1.0, length_scale_bounds=(0.0, 1.0)),
+            "length_scale_bounds",
+        ),
+    ],
+)
+def test_non_positive_hyperparameters_raise(factory, name):
+    with pytest.raises(ValueError, match=name):
+        factory()
+
+
+def test_ard_length_scale_must_match_features(X):
+    with pytest.raises(ValueError, match="length_scale"):
+        SquaredExponential(1.0, [1.0, 1.0, 1.0])(X)
