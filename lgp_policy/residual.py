@@ -74,6 +74,7 @@ __all__ = [
     "gate_from_config",
     "gp_policy_kind",
     "load_any_policy",
+    "press_reward",
     "register_policy_kind",
     "require_rl",
     "zero_init_residual_actor",
@@ -343,6 +344,9 @@ class ResidualWrapper(gym.Wrapper):
             several env steps. The reward is the (undiscounted) sum over them and
             ``info["env_steps"]`` counts them, so env-step budgets stay honest. Off by default
             (one agent step = one env step).
+        reward_fn: ``reward_fn(env_reward, info, previous_info) -> float``, the agent's reward
+            per env step (default: the env's reward). :func:`press_reward` is the one used for
+            the coffee task.
 
     ``info`` gains ``env_steps``, ``residual_gate`` (the gate of the action just applied) and
     ``base_action``.
@@ -358,6 +362,7 @@ class ResidualWrapper(gym.Wrapper):
         residual_dims: Sequence[int] | None = None,
         include_gate_obs: bool = True,
         skip_ungated: bool = False,
+        reward_fn: Callable[[float, Mapping[str, Any], Mapping[str, Any]], float] | None = None,
     ) -> None:
         super().__init__(env)
         if not hasattr(base, "predict"):
@@ -381,6 +386,8 @@ class ResidualWrapper(gym.Wrapper):
         self.residual_dims = dims.astype(np.intp)
         self.include_gate_obs = bool(include_gate_obs)
         self.skip_ungated = bool(skip_ungated)
+        self.reward_fn = reward_fn
+        self._prev_info: Mapping[str, Any] = {}
         self._act_low = act_space.low.astype(np.float32)
         self._act_high = act_space.high.astype(np.float32)
         self.observation_space = _agent_observation_space(obs_space, act_space, include_gate_obs)
@@ -422,8 +429,15 @@ class ResidualWrapper(gym.Wrapper):
         obs, info = self.env.reset(seed=seed, options=options)
         self._base_state = None
         self._episode_start = True
+        self._prev_info = info
         self._query_base(obs)
         return self._agent_obs(), info
+
+    def _reward(self, reward: float, info: Mapping[str, Any]) -> float:
+        if self.reward_fn is not None:
+            reward = self.reward_fn(reward, info, self._prev_info)
+        self._prev_info = info
+        return float(reward)
 
     def step(
         self, action: NDArray[Any]
@@ -448,7 +462,7 @@ class ResidualWrapper(gym.Wrapper):
             self._act_high,
         )[0]
         obs, reward, terminated, truncated, info = self.env.step(applied)
-        total_reward = float(reward)
+        total_reward = self._reward(reward, info)
         env_steps = 1
         # The base is also asked in a final state: the agent's last observation must hold the
         # base action there (SB3 bootstraps truncated episodes from it); it is never applied.
@@ -457,7 +471,7 @@ class ResidualWrapper(gym.Wrapper):
             obs, reward, terminated, truncated, info = self.env.step(
                 np.clip(self._base_action, self._act_low, self._act_high)
             )
-            total_reward += float(reward)
+            total_reward += self._reward(reward, info)
             env_steps += 1
             self._query_base(obs)
         info = dict(info)
@@ -476,6 +490,25 @@ def _agent_observation_space(
         lows.append(np.zeros(1, np.float32))
         highs.append(np.ones(1, np.float32))
     return spaces.Box(np.concatenate(lows), np.concatenate(highs), dtype=np.float32)
+
+
+def press_reward(reward: float, info: Mapping[str, Any], previous_info: Mapping[str, Any]) -> float:
+    """The coffee env's dense reward with its stage bonus paid once, on reaching a stage.
+
+    The env pays ``reward_stage`` = 1 per stage reached *every step* (2 while the cup stands
+    placed), and success ends the episode. With a discount of 0.98 an agent that keeps the cup
+    placed without pressing expects about 2 / (1 - 0.98) = 100, more than the +13 of pressing
+    (success bonus 10 + stage 3, then the episode ends): the per-step bonus teaches the residual
+    *not* to press. Here the stage term is ``STAGE_BONUS * (stage - previous stage)`` (+1 on
+    reaching a stage, -1 on losing one, e.g. knocking the placed cup away); all other terms
+    (``reach``, ``carry``, ``press``, ``success``, ``failure``) are the env's. Falls back to the
+    env's reward if the ``info`` has no reward terms.
+    """
+    if "reward_stage" not in info or "stage" not in info:
+        return float(reward)
+    bonus = float(info["reward_stage"]) / max(int(info["stage"]), 1) if info["stage"] else 1.0
+    delta = int(info["stage"]) - int(previous_info.get("stage", 0))
+    return float(reward) - float(info["reward_stage"]) + bonus * delta
 
 
 # --------------------------------------------------------------------------------------------
@@ -1241,6 +1274,7 @@ def finetune(
     residual_dims: Sequence[int] | None = None,
     include_gate_obs: bool = True,
     skip_ungated: bool = True,
+    reward_fn: Callable[[float, Mapping[str, Any], Mapping[str, Any]], float] | None = press_reward,
     n_envs: int = 1,
     hyperparameters: Mapping[str, Any] | None = None,
     eval_env_fn: Callable[[], gym.Env] | None = None,
@@ -1273,6 +1307,8 @@ def finetune(
         out_dir: where ``residual_policy.npz``, ``learning_curve.png``/``.json`` and the
             checkpoints go (nothing is written without it).
         base_path: the base's file, embedded into the saved policies.
+        reward_fn: the agent's reward per env step (default :func:`press_reward`, which is the
+            env's reward for envs without the coffee task's reward terms).
 
     Returns:
         :class:`FinetuneResult` with the policy, the curve and the step counts.
@@ -1307,6 +1343,7 @@ def finetune(
                 residual_dims=residual_dims,
                 include_gate_obs=include_gate_obs,
                 skip_ungated=skip_ungated,
+                reward_fn=reward_fn,
             )
             return Monitor(env)
 

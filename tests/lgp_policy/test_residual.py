@@ -502,3 +502,21 @@ def test_gp_policy_kind_is_read_from_the_gp_policy_module():
     from lgp_policy.residual import gp_policy_kind
 
     assert gp_policy_kind() == FORMAT_NAME
+
+
+def test_press_reward_pays_the_stage_bonus_once():
+    from lgp_policy.residual import press_reward
+
+    def info(stage, **terms):
+        out = {"stage": stage, "reward_stage": float(stage)}
+        out.update({f"reward_{k}": v for k, v in terms.items()})
+        return out
+
+    placed = info(2, press=-0.05)
+    env_reward = sum(v for k, v in placed.items() if k.startswith("reward_"))
+    assert press_reward(env_reward, placed, info(1)) == pytest.approx(-0.05 + 1.0)
+    assert press_reward(env_reward, placed, placed) == pytest.approx(-0.05)  # no per-step bonus
+    done = info(3, press=0.9, success=10.0)
+    assert press_reward(13.9, done, placed) == pytest.approx(0.9 + 10.0 + 1.0)
+    assert press_reward(0.9, info(1, carry=-0.1), placed) == pytest.approx(-0.1 - 1.0)
+    assert press_reward(-3.5, {}, {}) == -3.5  # envs without these terms keep their reward
