@@ -117,12 +117,7 @@ def test_evaluate_policy_from_sb3(policy):
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
 
-    venv = make_vec_env(
-        gym_coffee.ENV_IDS[0],
-        n_envs=2,
-        seed=10_000,
-        env_kwargs={"max_episode_steps": 30} if False else None,
-    )
+    venv = make_vec_env(gym_coffee.ENV_IDS[0], n_envs=2, seed=10_000)
     mean, std = evaluate_policy(policy, venv, n_eval_episodes=2, deterministic=True, warn=False)
     venv.close()
     assert np.isfinite(mean) and np.isfinite(std)
