@@ -337,6 +337,13 @@ class LocalGP:
             kernel = learned.homoscedastic_kernel
             noise_kernel = learned.noise_gps[0].kernel_
             params["noise_kernel"] = noise_kernel
+            if len(subset) == len(datasets):  # every model took part: its EM result is final
+                return [
+                    HeteroscedasticGP._from_em(
+                        learned, i, Xl, yl, 0.0, 1.0, kernel=kernel, **params
+                    )
+                    for i, (Xl, yl) in enumerate(datasets)
+                ]
         models = []
         for Xl, yl in datasets:
             if self.hyperparameters == "local" and self.optimizer is not None:

@@ -1,0 +1,186 @@
+"""LocalGP: Algorithm 1 (assignment), Algorithm 2 (combination), exactness, calibration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lgp_policy import local as local_module
+from lgp_policy.gp import GaussianProcess
+from lgp_policy.heteroscedastic import HeteroscedasticGP
+from lgp_policy.kernels import SquaredExponential, WhiteNoise
+from lgp_policy.local import COMBINE_RULES, LocalGP
+
+
+def truth(t):
+    return 0.5 * np.sin(0.8 * t) + 0.3 * np.tanh(2.0 * (t - 5.0)) + 0.1 * t
+
+
+def noise_sd(t):
+    return (
+        0.02 + 0.15 * np.exp(-(((t - 2.0) / 1.5) ** 2)) + 0.08 * np.exp(-(((t - 7.5) / 0.8) ** 2))
+    )
+
+
+def demos(n, seed=0, n_demos=4):
+    """``n_demos`` trajectory-like demonstrations on one time grid of [0, 10] s."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 10.0, n // n_demos)
+    X = np.tile(t, n_demos)[:, None]
+    return X, truth(X[:, 0]) + noise_sd(X[:, 0]) * rng.standard_normal(X.shape[0])
+
+
+def held_out(n=400, seed=99):
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 10.0, n)
+    return t[:, None], truth(t) + noise_sd(t) * rng.standard_normal(n)
+
+
+def kernel():
+    return SquaredExponential(1.0, 1.0) + WhiteNoise(0.01)
+
+
+def coverage(model, X, y):
+    mean, std = model.predict(X, return_std=True)
+    return float(np.mean(np.abs(y - mean) < 1.959964 * std))
+
+
+@pytest.mark.parametrize("combine", ["product", "nearest"])
+def test_one_model_equals_exact_gp(combine):
+    X, y = demos(400)
+    Xs = np.linspace(-1.0, 11.0, 97)[:, None]
+    lgp = LocalGP(
+        kernel(), threshold=1e-6, max_points=10**6, local_model="exact", combine=combine
+    ).fit(X, y)
+    gp = GaussianProcess(kernel()).fit(X, y)
+    assert len(lgp.models_) == 1
+    np.testing.assert_allclose(lgp.models_[0].kernel_.theta, gp.kernel_.theta, rtol=1e-10)
+    for a, b in zip(lgp.predict(Xs, return_std=True), gp.predict(Xs, return_std=True), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    np.testing.assert_allclose(lgp.noise_variance(Xs), gp.noise_variance(Xs), rtol=1e-10)
+
+
+def test_one_heteroscedastic_model_equals_heteroscedastic_gp():
+    X, y = demos(400)
+    Xs = np.linspace(0.0, 10.0, 53)[:, None]
+    lgp = LocalGP(kernel(), threshold=1e-6, max_points=10**6, random_state=0).fit(X, y)
+    het = HeteroscedasticGP(kernel(), random_state=0).fit(X, y)
+    assert len(lgp.models_) == 1
+    for a, b in zip(
+        lgp.predict(Xs, return_std=True), het.predict(Xs, return_std=True), strict=True
+    ):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_assignment_structure():
+    X, y = demos(2000)
+    lgp = LocalGP(kernel(), threshold=0.5, max_points=100, local_model="exact").fit(X, y)
+    L = len(lgp.models_)
+    assert lgp.centers_.shape == (L, 1) and lgp.assignments_.shape == (2000,)
+    counts = np.bincount(lgp.assignments_, minlength=L)
+    assert L > 1 and counts.min() >= 1 and counts.max() <= 100
+    for l in range(L):  # Algorithm 1, line 15: centre = mean of the model's inputs
+        np.testing.assert_allclose(lgp.centers_[l], X[lgp.assignments_ == l].mean(axis=0))
+    # sorted order: replicates of one time step share a model
+    t = X[:, 0]
+    for value in t[:50]:
+        assert np.unique(lgp.assignments_[t == value]).size == 1
+
+
+def test_given_order_runs_algorithm_1_as_written():
+    X = np.array([[0.0], [5.0], [0.1], [5.1], [10.0]])
+    y = np.arange(5.0)
+    lgp = LocalGP(
+        SquaredExponential(1.0, 1.0) + WhiteNoise(0.1),
+        threshold=0.5,
+        local_model="exact",
+        order="given",
+        hyperparameters="fixed",
+    ).fit(X, y)
+    np.testing.assert_array_equal(lgp.assignments_, [0, 1, 0, 1, 2])
+    np.testing.assert_allclose(lgp.centers_[:, 0], [0.05, 5.05, 10.0])
+
+
+def test_latent_product_is_calibrated_noisy_product_is_not():
+    """Multiplying noisy local predictions pulls to the prior and under-covers (known trap)."""
+    X, y = demos(2000)
+    X_test, y_test = held_out()
+    params = {"threshold": 0.5, "max_points": 100, "local_model": "exact", "combine": "product"}
+    latent = LocalGP(kernel(), **params).fit(X, y)
+    noisy = LocalGP(kernel(), combine_noisy=True, **params).fit(X, y)
+    cov_latent, cov_noisy = coverage(latent, X_test, y_test), coverage(noisy, X_test, y_test)
+    assert cov_latent > 0.9
+    assert cov_noisy < 0.85
+    rmse = [
+        np.sqrt(np.mean((m.predict(X_test) - truth(X_test[:, 0])) ** 2)) for m in (latent, noisy)
+    ]
+    assert rmse[0] < 0.5 * rmse[1]
+
+
+@pytest.mark.parametrize("combine", COMBINE_RULES)
+def test_calibrated_heteroscedastic_local_models(combine):
+    X, y = demos(2000, seed=1)
+    X_test, y_test = held_out(seed=7)
+    lgp = LocalGP(kernel(), threshold=0.5, max_points=200, combine=combine, random_state=0)
+    lgp.fit(X, y)
+    assert 0.92 <= coverage(lgp, X_test, y_test) <= 0.98
+    grid = np.linspace(0.5, 9.5, 10)[:, None]
+    ratio = np.sqrt(lgp.noise_variance(grid)) / noise_sd(grid[:, 0])
+    assert np.all((ratio > 0.6) & (ratio < 1.6))
+
+
+def test_skipping_far_models_is_exact(monkeypatch):
+    X, y = demos(2000)
+    Xs = np.linspace(0.0, 10.0, 301)[:, None]
+    short = SquaredExponential(1.0, 0.2) + WhiteNoise(0.01)
+    lgp = LocalGP(short, max_points=100, local_model="exact", hyperparameters="fixed").fit(X, y)
+    skipped = [
+        np.mean(np.maximum(lo - Xs[:, 0], Xs[:, 0] - hi) > local_module.SKIP_DISTANCE * ls)
+        for (lo, hi), ls in zip(lgp._boxes[:, :, 0], lgp._skip_scale, strict=True)
+    ]
+    assert np.mean(skipped) > 0.3  # the shortcut is really taken
+    fast = lgp.predict(Xs, return_std=True)
+    monkeypatch.setattr(local_module, "SKIP_DISTANCE", np.inf)
+    full = lgp.predict(Xs, return_std=True)
+    np.testing.assert_allclose(fast, full, rtol=0, atol=1e-12)
+
+
+def test_deterministic_and_multi_target():
+    X, y = demos(800)
+    Y = np.column_stack([y, -2.0 * y])
+    a = LocalGP(kernel(), max_points=200, local_model="exact", random_state=1).fit(X, Y)
+    b = LocalGP(kernel(), max_points=200, local_model="exact", random_state=1).fit(X, Y)
+    Xs = np.linspace(0.0, 10.0, 21)[:, None]
+    np.testing.assert_array_equal(a.predict(Xs), b.predict(Xs))
+    mean, std = a.predict(Xs, return_std=True)
+    assert mean.shape == std.shape == (21, 2)
+    np.testing.assert_allclose(mean[:, 1], -2.0 * mean[:, 0], atol=1e-8)
+    assert np.isfinite(a.log_marginal_likelihood())
+    with pytest.raises(ValueError, match="1-D y"):
+        LocalGP(kernel(), local_model="heteroscedastic").fit(X, Y)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"threshold": 0.0}, "threshold"),
+        ({"threshold": 1.5}, "threshold"),
+        ({"max_points": 1}, "max_points"),
+        ({"local_model": "sparse"}, "local_model"),
+        ({"combine": "mean"}, "combine"),
+        ({"hyperparameters": "global"}, "hyperparameters"),
+        ({"order": "random"}, "order"),
+    ],
+)
+def test_bad_parameters(kwargs, match):
+    X, y = demos(40)
+    with pytest.raises(ValueError, match=match):
+        LocalGP(**kwargs).fit(X, y)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="mismatched"):
+        LocalGP().fit(np.zeros((4, 1)), np.zeros(3))
+    lgp = LocalGP(kernel(), local_model="exact").fit(*demos(40))
+    with pytest.raises(ValueError, match="NaN"):
+        lgp.predict(np.array([[np.nan]]))
