@@ -791,6 +791,9 @@ def _atomic_savez(path: Path, arrays: Mapping[str, NDArray[Any]], overwrite: boo
             np.savez(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 -> the usual permissions
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -1401,18 +1404,22 @@ def finetune(
             if progress:
                 from tqdm.auto import tqdm
 
-                self.bar = tqdm(total=total_env_steps, unit="step", desc=f"finetune {algo}")
+                self.bar = tqdm(
+                    total=total_env_steps, unit="step", desc=f"finetune {algo}", mininterval=0.5
+                )
+                if curve:
+                    self.bar.set_postfix(held_out=f"{_curve_value(curve[-1]):.2f}")
 
         def _on_step(self) -> bool:
             n = sum(int(i.get("env_steps", 1)) for i in self.locals.get("infos", []))
             self.env_steps += n
             if self.bar is not None:
                 self.bar.update(min(n, max(total_env_steps - self.bar.n, 0)))
-                if curve:
-                    self.bar.set_postfix(press=f"{_curve_value(curve[-1]):.2f}")
             if eval_freq > 0 and self.env_steps >= self.next_eval:
                 self.next_eval += eval_freq
                 record(self.env_steps)
+                if self.bar is not None:
+                    self.bar.set_postfix(held_out=f"{_curve_value(curve[-1]):.2f}")
             if out is not None and checkpoint_freq > 0 and self.env_steps >= self.next_ckpt:
                 self.next_ckpt += checkpoint_freq
                 policy.save(

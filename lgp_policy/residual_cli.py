@@ -236,9 +236,9 @@ def run_finetune(args: argparse.Namespace) -> int:
         f"{result.env_steps} env steps ({result.agent_steps} agent steps) in "
         f"{result.wall_time_s:.0f} s"
     )
-    print(f"{'stage':<16}{'base':>8}{'fine-tuned':>12}   ({last['episodes']} held-out layouts)")
+    print(f"{'stage':<19}{'base':>8}{'fine-tuned':>12}   ({last['episodes']} held-out layouts)")
     for key, value in last["rates"].items():
-        print(f"{key:<16}{first['rates'][key]:>8.2f}{value:>12.2f}")
+        print(f"{key:<19}{first['rates'][key]:>8.2f}{value:>12.2f}")
     print(f"wrote {out / 'residual_policy.npz'}, {out / 'learning_curve.png'}")
     return 0
 
