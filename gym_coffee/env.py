@@ -1,0 +1,379 @@
+"""``CoffeeEnv``: the coffee task of Schneider & Ertel (IROS 2010, Sec. IV, Fig. 3) in PyBullet."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import EzPickle
+from numpy.typing import NDArray
+
+from gym_coffee.kinematics import PandaKinematics
+from gym_coffee.robot import GRIPPER_MAX_OPENING, NEUTRAL_JOINTS, Panda
+from gym_coffee.scene import (
+    BUTTON_PRESS_TRAVEL,
+    CUP_HEIGHT,
+    CUP_TIPPED_TILT,
+    CUP_UPRIGHT_TILT,
+    PLACE_OFFSET,
+    PLACE_TOLERANCE,
+    TABLE_TOP_Z,
+    TABLE_X,
+    TABLE_Y,
+    CoffeeScene,
+    Layout,
+    rot_z,
+)
+from gym_coffee.simulation import Simulation
+
+__all__ = [
+    "CONTROL_DT",
+    "MAX_EPISODE_STEPS",
+    "N_SUBSTEPS",
+    "OBS_DIM",
+    "OBS_SLICES",
+    "PHYSICS_DT",
+    "CoffeeEnv",
+    "object_frames",
+    "obs_part",
+]
+
+#: Physics time step (s) and physics steps per control step; control period CONTROL_DT = 0.04 s (25
+#: Hz).
+PHYSICS_DT = 1.0 / 250.0
+N_SUBSTEPS = 10
+CONTROL_DT = PHYSICS_DT * N_SUBSTEPS
+#: Time limit used at registration (steps); 400 steps = 16 s.
+MAX_EPISODE_STEPS = 400
+#: Uniform noise (rad) added to each joint of the start posture.
+START_JOINT_NOISE = 0.05
+
+# name, size, (low, high): observations are clipped to these bounds.
+_OBS_LAYOUT = [
+    ("time", 1, (0.0, 1e4)),
+    ("joint_pos", 7, (-2 * np.pi, 2 * np.pi)),
+    ("joint_vel", 7, (-50.0, 50.0)),
+    ("gripper", 1, (0.0, 0.1)),
+    ("ee_pos", 3, (-5.0, 5.0)),
+    ("cup_pos", 3, (-5.0, 5.0)),
+    ("cup_quat", 4, (-1.0, 1.0)),
+    ("cup_init_pos", 3, (-5.0, 5.0)),
+    ("machine_pos", 3, (-5.0, 5.0)),
+    ("machine_yaw", 1, (-np.pi, np.pi)),
+    ("button_travel", 1, (0.0, 0.01)),
+]
+
+
+def _make_slices() -> dict[str, slice]:
+    slices, start = {}, 0
+    for name, size, _ in _OBS_LAYOUT:
+        slices[name] = slice(start, start + size)
+        start += size
+    return slices
+
+
+#: Named parts of the flat observation vector.
+OBS_SLICES: dict[str, slice] = _make_slices()
+#: Length of the observation vector.
+OBS_DIM: int = sum(size for _, size, _ in _OBS_LAYOUT)
+OBS_LOW = np.concatenate([np.full(size, lo) for _, size, (lo, _) in _OBS_LAYOUT]).astype(np.float32)
+OBS_HIGH = np.concatenate([np.full(size, hi) for _, size, (_, hi) in _OBS_LAYOUT]).astype(
+    np.float32
+)
+
+REWARD_TERMS = ("reach", "carry", "press", "stage", "success", "failure")
+STAGE_BONUS = 1.0
+SUCCESS_BONUS = 10.0
+FAILURE_PENALTY = -10.0
+
+
+def obs_part(obs: NDArray[Any], name: str) -> NDArray[Any]:
+    """The part ``name`` of one observation (OBS_DIM,) or a batch (n, OBS_DIM)."""
+    return np.asarray(obs)[..., OBS_SLICES[name]]
+
+
+def object_frames(obs: NDArray[Any]) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """Object frames (position (3,), rotation (3, 3)) rebuilt from one observation (OBS_DIM,).
+
+    ``cup``: at the cup's initial base centre, identity rotation (the cup is rotationally
+    symmetric);
+    ``machine``: at the machine's footprint centre, rotated by ``Rz(machine_yaw)``.
+    """
+    obs = np.asarray(obs, dtype=np.float64)
+    yaw = float(obs_part(obs, "machine_yaw")[0])
+    return {
+        "cup": (obs_part(obs, "cup_init_pos").copy(), np.eye(3)),
+        "machine": (obs_part(obs, "machine_pos").copy(), rot_z(yaw)),
+    }
+
+
+class CoffeeEnv(gym.Env, EzPickle):
+    """A Franka Panda makes coffee: grasp a cup, put it under the coffee machine's spout, press the
+    button.
+
+    ## Description
+    The coffee task of Schneider & Ertel, *Robot Learning by Demonstration with Local Gaussian
+    Process
+    Regression* (IROS 2010), Sec. IV and Fig. 3, in PyBullet with a 7-DOF Franka Panda instead of
+    the
+    paper's 5-DOF Katana. A cup (6 cm x 8 cm, 0.15 kg) stands somewhere on the table to the robot's
+    right;
+    a coffee machine stands to its left, its front roughly facing the robot. The robot must grasp
+    the cup
+    (from the side: the machine's head overhangs the drip tray, so a top grasp cannot bring the cup
+    under
+    the spout), place it upright on the drip tray under the spout, let go, move away without
+    knocking it
+    over and press the small spring-loaded button on the machine's front panel.
+
+    ## Action Space
+    ``Box(-1, 1, (8,), float32)``. ``a[:7]``: joint-position deltas, joint targets = measured
+    positions +
+    ``a[:7] * MAX_JOINT_STEP`` (0.05 rad per step), clipped to the joint limits; ``a[7]``: absolute
+    gripper opening ``(a[7] + 1) / 2 * 0.08`` m. ``gym_coffee.robot.action_from_targets`` inverts
+    this.
+
+    ## Observation Space
+    Flat ``Box(OBS_LOW, OBS_HIGH, (OBS_DIM,), float32)`` (wide finite bounds); ``OBS_SLICES`` names
+    the parts and
+    :func:`obs_part` extracts them: ``time`` (s since reset), ``joint_pos`` (7, rad), ``joint_vel``
+    (7, rad/s), ``gripper`` (finger opening, m), ``ee_pos`` (grasp point, world, m), ``cup_pos``
+    (cup base
+    centre), ``cup_quat`` (xyzw), ``cup_init_pos``, ``machine_pos`` (footprint centre),
+    ``machine_yaw``
+    (rad), ``button_travel`` (m). :func:`object_frames` rebuilds the cup and machine frames.
+
+    ## Rewards
+    ``reward_type="dense"``: the sum of named terms, each in ``info`` as ``reward_<name>``:
+    ``reach`` (minus the grasp point's distance to the cup's middle, until the cup is grasped),
+    ``carry`` (minus the cup's distance to the place under the spout, after grasping, until placed),
+    ``press`` (once placed: minus the grasp point's distance to the button, plus the button's
+    travel as
+    a fraction of the press travel), ``stage`` (1 per stage reached: grasped, placed, success),
+    ``success`` (+10 on success) and ``failure`` (-10 if the cup falls off the table or tips over).
+    ``reward_type="sparse"``: ``success`` only, 1 on success, else 0 (the other terms are 0).
+
+    ## Starting State
+    The Panda in a ready posture (gripper down, open) with uniform noise of +-0.05 rad per joint;
+    the cup
+    upright in ``scene.CUP_REGION_*``; the machine in ``scene.MACHINE_REGION_*`` with a yaw of at
+    most
+    +-15 degrees; all drawn from ``self.np_random``, so ``reset(seed=s)`` fixes the layout.
+
+    ## Episode End
+    Terminates on success (cup grasped, placed under the spout and the button pressed while it
+    stands
+    there) or on an unrecoverable failure (cup off the table or tipped over). Truncated by the time
+    limit
+    (``max_episode_steps=400`` at registration, 16 s at 25 Hz).
+
+    ## Info
+    ``is_success``, ``cup_grasped`` (latched: the cup was lifted off the table between both
+    fingers),
+    ``cup_placed`` (now: upright, not touched by the robot, base within ``place_tolerance`` of the
+    place
+    under the spout, resting on the tray), ``button_pressed`` (latched: travel passed the
+    threshold),
+    ``stage`` (0: none, 1: grasped, 2: grasped and placed, 3: success), and the ``reward_<name>``
+    terms.
+
+    ## Arguments
+    ==================  ==========  ===========================================================
+    ``render_mode``     ``None``    ``"rgb_array"`` (headless TinyRenderer) or ``"human"`` (GUI)
+    ``reward_type``     ``"dense"`` ``"dense"`` or ``"sparse"``
+    ``width``           ``320``     image width for ``"rgb_array"``
+    ``height``          ``240``     image height for ``"rgb_array"``
+    ==================  ==========  ===========================================================
+
+    ## Version History
+    * v0: first version.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {
+        "render_modes": ["human", "rgb_array"],
+        "render_fps": round(1.0 / CONTROL_DT),
+    }
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        *,
+        reward_type: str = "dense",
+        width: int = 320,
+        height: int = 240,
+    ) -> None:
+        EzPickle.__init__(self, render_mode, reward_type=reward_type, width=width, height=height)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}"
+            )
+        if reward_type not in ("dense", "sparse"):
+            raise ValueError(f"reward_type must be 'dense' or 'sparse', got {reward_type!r}")
+        self.render_mode = render_mode
+        self.reward_type = reward_type
+        self.width, self.height = int(width), int(height)
+
+        self.sim = Simulation(render_mode, timestep=PHYSICS_DT, n_substeps=N_SUBSTEPS)
+        self.robot = Panda(self.sim)
+        self.scene = CoffeeScene(self.sim)
+        self.robot.load()
+        self.scene.load()
+        self.robot.reset(NEUTRAL_JOINTS)
+
+        self.action_space = spaces.Box(-1.0, 1.0, (8,), dtype=np.float32)
+        self.observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
+
+        self._n_steps = 0
+        self._cup_init_pos = np.zeros(3)
+        self._grasped = False
+        self._pressed = False
+        self._pressed_with_cup = False
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def kinematics(self) -> PandaKinematics:
+        """Forward kinematics and Jacobian of the grasp point (the ``RobotModel`` protocol)."""
+        return self.robot.kinematics
+
+    def task_points(self) -> dict[str, NDArray[np.float64]]:
+        """Task points in the world frame: ``cup_pos``, ``cup_radius``, ``cup_height``,
+        ``place_pos``,
+        ``place_tolerance``, ``button_pos``, ``button_axis``, ``button_travel_to_press``."""
+        return self.scene.task_points()
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[NDArray[np.float32], dict[str, Any]]:
+        super().reset(seed=seed)
+        rng = self.np_random
+        layout = Layout.sample(rng)
+        q0 = NEUTRAL_JOINTS + rng.uniform(-START_JOINT_NOISE, START_JOINT_NOISE, size=7)
+        self.scene.load()
+        self.scene.reset(layout)
+        self.robot.reset(q0, GRIPPER_MAX_OPENING)
+        self._n_steps = 0
+        self._cup_init_pos = layout.cup_pos.copy()
+        self._grasped = False
+        self._pressed = False
+        self._pressed_with_cup = False
+        obs = self._get_obs()
+        info = self._evaluate()[0]
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def step(
+        self, action: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        self.robot.set_action(action)
+        self.scene.apply_spring()
+        self.sim.step()
+        self._n_steps += 1
+        obs = self._get_obs()
+        info, failed = self._evaluate()
+        reward = float(sum(info[f"reward_{name}"] for name in REWARD_TERMS))
+        terminated = bool(info["is_success"] or failed)
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, terminated, False, info
+
+    def render(self) -> NDArray[np.uint8] | None:
+        """An RGB frame (height, width, 3) for ``"rgb_array"``; moves the GUI camera for
+        ``"human"``."""
+        target, distance, yaw, pitch = (0.38, 0.0, 0.12), 1.35, 65.0, -28.0
+        if self.render_mode == "rgb_array":
+            return self.sim.render(self.width, self.height, target, distance, yaw, pitch)
+        if self.render_mode == "human":
+            self.sim.reset_debug_camera(target, distance, yaw, pitch)
+        return None
+
+    def close(self) -> None:
+        if getattr(self, "sim", None) is not None:
+            self.sim.close()
+
+    # ------------------------------------------------------------------ internals
+    def _get_obs(self) -> NDArray[np.float32]:
+        q, qd = self.robot.joint_states()
+        cup_pos, cup_quat = self.scene.cup_pose()
+        layout = self.scene.layout
+        obs = np.concatenate(
+            [
+                [self._n_steps * CONTROL_DT],
+                q,
+                qd,
+                [self.robot.gripper_opening()],
+                self.kinematics.forward_kinematics(q),
+                cup_pos,
+                cup_quat,
+                self._cup_init_pos,
+                layout.machine_pos,
+                [layout.machine_yaw],
+                [self.scene.button_travel()],
+            ]
+        )
+        return np.clip(obs, OBS_LOW, OBS_HIGH).astype(np.float32)
+
+    def _evaluate(self) -> tuple[dict[str, Any], bool]:
+        """Stage flags, reward terms and whether the episode failed, from the simulator's state."""
+        scene = self.scene
+        cup_pos, cup_quat = scene.cup_pose()
+        tilt = scene.cup_tilt(cup_quat)
+        left, right = scene.finger_contacts()
+        held = left and right
+        # Grasped (latched): the cup is off the table between both fingers.
+        if held and not scene.cup_on_table() and cup_pos[2] > TABLE_TOP_Z + 0.005:
+            self._grasped = True
+        place_pos = scene.machine_point(PLACE_OFFSET)
+        offset = cup_pos - place_pos
+        cup_lin_vel, _ = self.sim.get_base_velocity("cup")
+        placed = bool(
+            tilt < CUP_UPRIGHT_TILT
+            and np.hypot(offset[0], offset[1]) < PLACE_TOLERANCE
+            and abs(offset[2]) < 0.01
+            and not scene.robot_touches_cup()
+            and np.linalg.norm(cup_lin_vel) < 0.1
+        )
+        travel = scene.button_travel()
+        if travel >= BUTTON_PRESS_TRAVEL:
+            self._pressed = True
+            if placed:
+                self._pressed_with_cup = True
+        success = bool(self._grasped and placed and self._pressed_with_cup)
+        off_table = bool(
+            cup_pos[2] < TABLE_TOP_Z - 0.05
+            or not (TABLE_X[0] < cup_pos[0] < TABLE_X[1] and TABLE_Y[0] < cup_pos[1] < TABLE_Y[1])
+        )
+        tipped = bool(tilt > CUP_TIPPED_TILT and not held)
+        failed = off_table or tipped
+
+        stage = 3 if success else (2 if self._grasped and placed else (1 if self._grasped else 0))
+        terms = dict.fromkeys(REWARD_TERMS, 0.0)
+        if self.reward_type == "dense":
+            q, _ = self.robot.joint_states()
+            ee = self.kinematics.forward_kinematics(q)
+            cup_middle = cup_pos + np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
+            if not self._grasped:
+                terms["reach"] = -float(np.linalg.norm(ee - cup_middle))
+            elif not placed:
+                terms["carry"] = -float(np.linalg.norm(offset))
+            else:
+                button = scene.task_points()["button_pos"]
+                terms["press"] = -float(np.linalg.norm(ee - button)) + min(
+                    travel / BUTTON_PRESS_TRAVEL, 1.0
+                )
+            terms["stage"] = STAGE_BONUS * stage
+            terms["success"] = SUCCESS_BONUS if success else 0.0
+            terms["failure"] = FAILURE_PENALTY if failed else 0.0
+        else:
+            terms["success"] = 1.0 if success else 0.0
+        info: dict[str, Any] = {
+            "is_success": success,
+            "cup_grasped": bool(self._grasped),
+            "cup_placed": placed,
+            "button_pressed": bool(self._pressed),
+            "stage": int(stage),
+        }
+        info.update({f"reward_{name}": float(value) for name, value in terms.items()})
+        return info, failed

@@ -1,0 +1,183 @@
+"""Pure-numpy kinematics of the Franka Panda arm (no PyBullet).
+
+The chain is the one of ``franka_panda/panda.urdf`` in ``pybullet_data``: seven revolute joints,
+then the
+fixed flange (``panda_joint8``, 0.107 m), the hand (rotated by -pi/4 about z) and the grasp target
+between the
+fingertips (0.105 m further along the hand's z axis, link ``panda_grasptarget``). The end-effector
+point of
+gym-coffee is that grasp target, the same point as ``ee_pos`` in the observations.
+
+:class:`PandaKinematics` satisfies the ``RobotModel`` protocol of ``docs/CONTRACTS.md``:
+``n_joints``, ``forward_kinematics(q) -> (3,)``, ``position_jacobian(q) -> (3, 7)``,
+``joint_lower``,
+``joint_upper``. The Jacobian is the exact geometric one (``z_i x (p_ee - p_i)``), not a finite
+difference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "GRASP_OFFSET",
+    "JOINT_LOWER",
+    "JOINT_UPPER",
+    "JOINT_VELOCITY_LIMIT",
+    "PandaKinematics",
+]
+
+# URDF joint origins of panda_joint1..7: translation (m) and roll (rad); pitch and yaw are zero.
+_JOINT_XYZ = np.array(
+    [
+        [0.0, 0.0, 0.333],
+        [0.0, 0.0, 0.0],
+        [0.0, -0.316, 0.0],
+        [0.0825, 0.0, 0.0],
+        [-0.0825, 0.384, 0.0],
+        [0.0, 0.0, 0.0],
+        [0.088, 0.0, 0.0],
+    ]
+)
+_HALF_PI_URDF = 1.57079632679  # the URDF's literal value
+_JOINT_ROLL = np.array(
+    [
+        0.0,
+        -_HALF_PI_URDF,
+        _HALF_PI_URDF,
+        _HALF_PI_URDF,
+        -_HALF_PI_URDF,
+        _HALF_PI_URDF,
+        _HALF_PI_URDF,
+    ]
+)
+#: Distance (m) from the link-7 frame to the grasp point along link 7's z axis (flange 0.107 +
+#: 0.105).
+GRASP_OFFSET = 0.107 + 0.105
+_HAND_YAW = -0.785398163397  # panda_hand_joint rpy (rad)
+
+#: Joint limits (rad) of panda_joint1..7 from the URDF.
+JOINT_LOWER = np.array([-2.9671, -1.8326, -2.9671, -3.1416, -2.9671, -0.0873, -2.9671])
+JOINT_UPPER = np.array([2.9671, 1.8326, 2.9671, 0.0, 2.9671, 3.8223, 2.9671])
+#: Joint velocity limits (rad/s) from the URDF.
+JOINT_VELOCITY_LIMIT = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
+
+
+_XYZ = [tuple(row) for row in _JOINT_XYZ.tolist()]
+_ROLL_CS = [(float(np.cos(r)), float(np.sin(r))) for r in _JOINT_ROLL]
+_HAND_CS = (float(np.cos(_HAND_YAW)), float(np.sin(_HAND_YAW)))
+
+
+class PandaKinematics:
+    """Forward kinematics and Jacobians of the Panda's grasp point, in the world frame.
+
+    Args:
+        base_position: world position (m) of the robot base (``panda_link0``); the base is not
+        rotated.
+
+    Results for the last joint vector are cached, so calling :meth:`forward_kinematics` and
+    :meth:`position_jacobian` with the same ``q`` computes the chain once.
+
+    Example:
+        >>> kin = PandaKinematics()
+        >>> q = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+        >>> kin.forward_kinematics(q).shape, kin.position_jacobian(q).shape
+        ((3,), (3, 7))
+    """
+
+    n_joints: int = 7
+
+    def __init__(self, base_position: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+        self.base_position = np.asarray(base_position, dtype=np.float64).reshape(3)
+        self.joint_lower = JOINT_LOWER.copy()
+        self.joint_upper = JOINT_UPPER.copy()
+        self._q: NDArray[np.float64] | None = None
+        self._pos = np.zeros(3)
+        self._rot = np.eye(3)
+        self._jac_pos = np.zeros((3, 7))
+        self._axes: list[tuple[float, float, float]] = []
+
+    def _update(self, q: ArrayLike) -> None:
+        q = np.asarray(q, dtype=np.float64)
+        if self._q is not None and np.array_equal(q, self._q):
+            return
+        if q.shape != (7,):
+            raise ValueError(f"q must have shape (7,), got {q.shape}")
+        # Plain-float chain (columns x, y, z of the current frame's rotation and its origin p): for
+        # 3-vectors this is several times faster than numpy.
+        cos, sin = np.cos(q).tolist(), np.sin(q).tolist()
+        x0, x1, x2 = 1.0, 0.0, 0.0
+        y0, y1, y2 = 0.0, 1.0, 0.0
+        z0, z1, z2 = 0.0, 0.0, 1.0
+        p0, p1, p2 = self.base_position.tolist()
+        axes: list[tuple[float, float, float]] = []
+        origins: list[tuple[float, float, float]] = []
+        for i in range(7):
+            t0, t1, t2 = _XYZ[i]
+            p0 += t0 * x0 + t1 * y0 + t2 * z0
+            p1 += t0 * x1 + t1 * y1 + t2 * z1
+            p2 += t0 * x2 + t1 * y2 + t2 * z2
+            cr, sr = _ROLL_CS[i]
+            if sr != 0.0:  # R @ Rx(roll)
+                y0, y1, y2, z0, z1, z2 = (
+                    cr * y0 + sr * z0,
+                    cr * y1 + sr * z1,
+                    cr * y2 + sr * z2,
+                    cr * z0 - sr * y0,
+                    cr * z1 - sr * y1,
+                    cr * z2 - sr * y2,
+                )
+            c, s = cos[i], sin[i]  # R @ Rz(q_i)
+            x0, x1, x2, y0, y1, y2 = (
+                c * x0 + s * y0,
+                c * x1 + s * y1,
+                c * x2 + s * y2,
+                c * y0 - s * x0,
+                c * y1 - s * x1,
+                c * y2 - s * x2,
+            )
+            axes.append((z0, z1, z2))
+            origins.append((p0, p1, p2))
+        d = GRASP_OFFSET
+        e0, e1, e2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
+        jac = []
+        for (a0, a1, a2), (o0, o1, o2) in zip(axes, origins, strict=False):  # z_i x (p_ee - p_i)
+            r0, r1, r2 = e0 - o0, e1 - o1, e2 - o2
+            jac.append((a1 * r2 - a2 * r1, a2 * r0 - a0 * r2, a0 * r1 - a1 * r0))
+        self._pos = np.array([e0, e1, e2])
+        self._jac_pos = np.array(jac).T
+        self._axes = axes
+        ch, sh = _HAND_CS  # hand frame = R @ Rz(hand yaw)
+        self._rot = np.array(
+            [
+                [ch * x0 + sh * y0, ch * y0 - sh * x0, z0],
+                [ch * x1 + sh * y1, ch * y1 - sh * x1, z1],
+                [ch * x2 + sh * y2, ch * y2 - sh * x2, z2],
+            ]
+        )
+        self._q = q.copy()
+
+    def forward_kinematics(self, q: ArrayLike) -> NDArray[np.float64]:
+        """Grasp-point position (3,) in the world frame for joint positions ``q`` (7,)."""
+        self._update(q)
+        return self._pos.copy()
+
+    def forward_pose(self, q: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Grasp-point position (3,) and hand orientation (3, 3) (columns: hand x, y, z axes).
+
+        The hand's z axis points from the wrist through the fingertips; the fingers close along its
+        y axis.
+        """
+        self._update(q)
+        return self._pos.copy(), self._rot.copy()
+
+    def position_jacobian(self, q: ArrayLike) -> NDArray[np.float64]:
+        """Position Jacobian (3, 7) of the grasp point: column i is ``z_i x (p_ee - p_i)``."""
+        self._update(q)
+        return self._jac_pos.copy()
+
+    def jacobian(self, q: ArrayLike) -> NDArray[np.float64]:
+        """Geometric Jacobian (6, 7): position rows, then angular-velocity rows (the joint axes)."""
+        self._update(q)
+        return np.vstack([self._jac_pos, np.array(self._axes).T])

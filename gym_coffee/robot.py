@@ -1,0 +1,142 @@
+"""The Franka Panda: 7 arm joints under position control and a parallel two-finger gripper.
+
+Action (``docs/CONTRACTS.md``): ``a[:7]`` are joint-position deltas, joint targets =
+measured joint positions + ``a[:7] * MAX_JOINT_STEP`` (rad per control step), clipped to the joint
+limits; ``a[7]`` is the absolute gripper opening ``(a[7] + 1) / 2 * GRIPPER_MAX_OPENING`` (m,
+distance
+between the fingers). :func:`action_from_targets` is the inverse.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gym_coffee.kinematics import JOINT_LOWER, JOINT_UPPER, JOINT_VELOCITY_LIMIT, PandaKinematics
+from gym_coffee.simulation import Simulation
+
+__all__ = [
+    "ARM_JOINTS",
+    "EE_LINK",
+    "FINGER_JOINTS",
+    "GRIPPER_MAX_OPENING",
+    "MAX_JOINT_STEP",
+    "NEUTRAL_JOINTS",
+    "Panda",
+    "action_from_targets",
+]
+
+#: Largest joint-position change commanded per control step (rad); at 25 Hz, 1.25 rad/s.
+MAX_JOINT_STEP = 0.05
+#: Largest distance between the fingers (m).
+GRIPPER_MAX_OPENING = 0.08
+#: PyBullet joint indices of panda_joint1..7, of the two finger joints, and the grasp-target link.
+ARM_JOINTS = (0, 1, 2, 3, 4, 5, 6)
+FINGER_JOINTS = (9, 10)
+FINGER_LINKS = (9, 10)
+EE_LINK = 11
+#: Start posture (rad), gripper pointing down in front of the robot.
+NEUTRAL_JOINTS = np.array([0.0, -0.6, 0.0, -2.4, 0.0, 1.85, 0.785])
+#: Joint torque limits (N m) of the Panda arm and force limit (N) per finger.
+ARM_FORCES = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])
+FINGER_FORCE = 20.0
+FINGER_MAX_VELOCITY = 0.2  # m/s per finger (URDF)
+#: Gain of PyBullet's position controller (fraction of the error corrected per physics step).
+POSITION_GAIN = 0.3
+
+
+def action_from_targets(
+    q: ArrayLike, q_target: ArrayLike, gripper_opening: float
+) -> NDArray[np.float32]:
+    """The action (8,) that commands joint targets ``q_target`` from measured ``q`` and a gripper
+    opening (m).
+
+    Clipped to [-1, 1]; the inverse of the scaling in :meth:`Panda.set_action`. Works on (7,) or
+    (n, 7)
+    with a scalar or (n,) ``gripper_opening``.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    q_target = np.asarray(q_target, dtype=np.float64)
+    delta = (q_target - q) / MAX_JOINT_STEP
+    grip = 2.0 * np.asarray(gripper_opening, dtype=np.float64) / GRIPPER_MAX_OPENING - 1.0
+    grip = np.broadcast_to(grip, delta.shape[:-1])[..., None]
+    return np.clip(np.concatenate([delta, grip], axis=-1), -1.0, 1.0).astype(np.float32)
+
+
+class Panda:
+    """The Panda arm and gripper in a :class:`~gym_coffee.simulation.Simulation`.
+
+    Args:
+        sim: the simulation to load the robot into.
+        base_position: world position of ``panda_link0``.
+    """
+
+    name = "panda"
+
+    def __init__(self, sim: Simulation, base_position: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+        self.sim = sim
+        self.base_position = np.asarray(base_position, dtype=np.float64)
+        self.kinematics = PandaKinematics(self.base_position)
+        self.joint_lower = JOINT_LOWER.copy()
+        self.joint_upper = JOINT_UPPER.copy()
+
+    def load(self) -> None:
+        self.sim.load_urdf(
+            self.name,
+            "franka_panda/panda.urdf",
+            self.base_position,
+            use_fixed_base=True,
+            package_asset=False,
+        )
+        for link in FINGER_LINKS:
+            self.sim.set_dynamics(
+                self.name, link, lateralFriction=1.0, spinningFriction=0.003, rollingFriction=0.0001
+            )
+
+    def reset(self, q: ArrayLike, gripper_opening: float = GRIPPER_MAX_OPENING) -> None:
+        """Put the arm at ``q`` and the gripper at an opening (m), at rest, and hold them there."""
+        q = np.clip(np.asarray(q, dtype=np.float64), self.joint_lower, self.joint_upper)
+        half = 0.5 * float(gripper_opening)
+        self.sim.reset_joint_states(self.name, ARM_JOINTS, q)
+        self.sim.reset_joint_states(self.name, FINGER_JOINTS, [half, half])
+        self._command(q, gripper_opening)
+
+    def _command(self, q_target: NDArray[np.float64], gripper_opening: float) -> None:
+        self.sim.control_joints(
+            self.name,
+            ARM_JOINTS,
+            q_target,
+            ARM_FORCES,
+            JOINT_VELOCITY_LIMIT,
+            position_gain=POSITION_GAIN,
+        )
+        half = 0.5 * float(gripper_opening)
+        self.sim.control_joints(
+            self.name,
+            FINGER_JOINTS,
+            [half, half],
+            [FINGER_FORCE, FINGER_FORCE],
+            [FINGER_MAX_VELOCITY, FINGER_MAX_VELOCITY],
+            position_gain=POSITION_GAIN,
+        )
+
+    def set_action(self, action: ArrayLike) -> None:
+        """Apply an action (8,) in [-1, 1] (clipped) as joint-position and gripper targets."""
+        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        q, _ = self.joint_states()
+        q_target = np.clip(q + action[:7] * MAX_JOINT_STEP, self.joint_lower, self.joint_upper)
+        opening = (action[7] + 1.0) / 2.0 * GRIPPER_MAX_OPENING
+        self._command(q_target, opening)
+
+    def joint_states(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Arm joint positions (7,) and velocities (7,)."""
+        return self.sim.get_joint_states(self.name, ARM_JOINTS)
+
+    def gripper_opening(self) -> float:
+        """Distance between the fingers (m)."""
+        pos, _ = self.sim.get_joint_states(self.name, FINGER_JOINTS)
+        return float(pos.sum())
+
+    def ee_position(self) -> NDArray[np.float64]:
+        """World position of the grasp point (from the simulator)."""
+        return self.sim.get_link_pose(self.name, EE_LINK)[0]

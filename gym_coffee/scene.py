@@ -1,0 +1,206 @@
+"""The coffee-task scene: table, cup, coffee machine with a spring-loaded button, layout sampling,
+stages.
+
+World frame: the robot base (``panda_link0``) stands at the origin on the table top (z = 0), facing
++x.
+Geometry of the assets (``gym_coffee/assets/*.urdf``) is mirrored by the constants below.
+
+Layout regions (drawn uniformly from the env's ``np_random`` at every reset):
+
+==================  =================================================================
+cup base centre     x in ``CUP_REGION_X``, y in ``CUP_REGION_Y`` (right of the robot)
+machine footprint   x in ``MACHINE_REGION_X``, y in ``MACHINE_REGION_Y`` (left of it),
+                    yaw in ``[-MACHINE_YAW_RANGE, MACHINE_YAW_RANGE]`` (0: front faces the robot)
+==================  =================================================================
+
+Cup and machine are redrawn until the cup is at least ``MIN_CUP_MACHINE_DISTANCE`` from the
+machine's footprint centre, so the cup never starts under or next to the machine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gym_coffee.simulation import Simulation
+
+__all__ = [
+    "BUTTON_PRESS_TRAVEL",
+    "CUP_HEIGHT",
+    "CUP_RADIUS",
+    "CUP_REGION_X",
+    "CUP_REGION_Y",
+    "MACHINE_REGION_X",
+    "MACHINE_REGION_Y",
+    "MACHINE_YAW_RANGE",
+    "PLACE_TOLERANCE",
+    "CoffeeScene",
+    "Layout",
+]
+
+# --- table (m) ---------------------------------------------------------------------------------
+TABLE_TOP_Z = 0.0
+TABLE_X = (-0.35, 1.05)
+TABLE_Y = (-0.6, 0.6)
+# --- cup: 6 cm diameter, 8 cm tall, 0.15 kg; frame at the centre of its base ----------------------
+CUP_RADIUS = 0.03
+CUP_HEIGHT = 0.08
+CUP_MASS = 0.15
+# --- coffee machine (machine frame: footprint centre on the table, +x from front to back) --------
+MACHINE_SIZE = (0.24, 0.20, 0.32)  # depth, width, height
+TRAY_TOP_Z = 0.03  # drip-tray top, machine frame
+HEAD_BOTTOM_Z = 0.21  # underside of the overhanging head
+HEAD_FRONT_X = -0.12  # front panel of the head
+#: Where the cup's base centre stands on the drip tray, under the spout (machine frame).
+PLACE_OFFSET = np.array([-0.05, 0.0, TRAY_TOP_Z])
+#: Centre of the button's face at rest (machine frame); the button presses along the machine's +x.
+BUTTON_FACE_OFFSET = np.array([-0.132, 0.05, 0.265])
+BUTTON_RADIUS = 0.012
+BUTTON_MAX_TRAVEL = 0.008
+#: Travel (m) past which the button counts as pressed (latched).
+BUTTON_PRESS_TRAVEL = 0.005
+#: Return force of the button's spring (N), a weak position motor towards travel 0.
+BUTTON_SPRING_FORCE = 3.0
+#: Horizontal distance (m) within which the cup's base centre counts as under the spout.
+PLACE_TOLERANCE = 0.025
+# --- layout regions ----------------------------------------------------------------------------
+CUP_REGION_X = (0.42, 0.62)
+CUP_REGION_Y = (-0.28, -0.06)
+MACHINE_REGION_X = (0.56, 0.66)
+MACHINE_REGION_Y = (0.14, 0.28)
+MACHINE_YAW_RANGE = np.deg2rad(15.0)
+MIN_CUP_MACHINE_DISTANCE = 0.28
+# --- failure ----------------------------------------------------------------------------------
+#: The cup counts as tipped over beyond this tilt (rad) while not held by both fingers.
+CUP_TIPPED_TILT = np.deg2rad(60.0)
+#: The cup counts as upright below this tilt (rad) (placing).
+CUP_UPRIGHT_TILT = np.deg2rad(10.0)
+
+FINGER_LINKS = (9, 10)
+
+
+def rot_z(yaw: float) -> NDArray[np.float64]:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class Layout:
+    """One episode's layout: cup base centre (3,), machine footprint centre (3,) and yaw (rad)."""
+
+    cup_pos: NDArray[np.float64]
+    machine_pos: NDArray[np.float64]
+    machine_yaw: float
+
+    @classmethod
+    def sample(cls, rng: np.random.Generator) -> Layout:
+        """Draw a layout from ``rng`` (rejection sampling keeps the cup away from the machine)."""
+        while True:
+            cup = np.array([rng.uniform(*CUP_REGION_X), rng.uniform(*CUP_REGION_Y), TABLE_TOP_Z])
+            machine = np.array(
+                [rng.uniform(*MACHINE_REGION_X), rng.uniform(*MACHINE_REGION_Y), TABLE_TOP_Z]
+            )
+            yaw = float(rng.uniform(-MACHINE_YAW_RANGE, MACHINE_YAW_RANGE))
+            if np.linalg.norm(cup[:2] - machine[:2]) >= MIN_CUP_MACHINE_DISTANCE:
+                return cls(cup, machine, yaw)
+
+
+class CoffeeScene:
+    """Table, cup and coffee machine in a :class:`~gym_coffee.simulation.Simulation`."""
+
+    def __init__(self, sim: Simulation) -> None:
+        self.sim = sim
+        self.layout = Layout(np.array([0.5, -0.15, 0.0]), np.array([0.6, 0.2, 0.0]), 0.0)
+
+    BODIES = ("plane", "table", "machine", "cup")
+
+    def load(self) -> None:
+        """Load (or, when loaded, remove and load afresh) the scene's bodies.
+
+        Loading afresh at every reset drops the contact caches of the previous episode, so an
+        episode
+        does not depend on what happened before the reset (Gymnasium's determinism checks).
+        """
+        sim = self.sim
+        for name in self.BODIES:
+            if name in sim.bodies:
+                sim.remove_body(name)
+        sim.load_urdf(
+            "plane", "plane.urdf", (0.0, 0.0, -0.72), use_fixed_base=True, package_asset=False
+        )
+        sim.load_urdf("table", "table.urdf", (0.0, 0.0, TABLE_TOP_Z), use_fixed_base=True)
+        sim.load_urdf(
+            "machine", "coffee_machine.urdf", self.layout.machine_pos, use_fixed_base=True
+        )
+        sim.load_urdf("cup", "cup.urdf", self.layout.cup_pos)
+
+    def reset(self, layout: Layout) -> None:
+        """Put the cup and machine where ``layout`` says, the button released."""
+        self.layout = layout
+        sim = self.sim
+        yaw = layout.machine_yaw
+        sim.set_base_pose(
+            "machine", layout.machine_pos, (0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2))
+        )
+        sim.set_base_pose("cup", layout.cup_pos, (0.0, 0.0, 0.0, 1.0))
+        sim.reset_joint_states("machine", [0], [0.0])
+        self.apply_spring()
+
+    def apply_spring(self) -> None:
+        """The button's return spring: a weak position motor towards travel 0."""
+        self.sim.control_joints(
+            "machine", [0], [0.0], [BUTTON_SPRING_FORCE], [0.2], position_gain=0.1
+        )
+
+    # ---------------------------------------------------------------- state
+    @property
+    def machine_rotation(self) -> NDArray[np.float64]:
+        return rot_z(self.layout.machine_yaw)
+
+    def machine_point(self, offset: NDArray[np.float64]) -> NDArray[np.float64]:
+        """World position of a point given in the machine frame."""
+        return self.layout.machine_pos + self.machine_rotation @ offset
+
+    def cup_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Cup base centre (3,) and quaternion (4,) xyzw."""
+        return self.sim.get_base_pose("cup")
+
+    def cup_tilt(self, quat: NDArray[np.float64]) -> float:
+        """Angle (rad) between the cup's axis and the vertical."""
+        x, y, _, _ = quat
+        # z component of the rotated z axis: 1 - 2 (x^2 + y^2)
+        return float(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
+
+    def button_travel(self) -> float:
+        pos, _ = self.sim.get_joint_states("machine", [0])
+        return float(max(pos[0], 0.0))
+
+    def finger_contacts(self) -> tuple[bool, bool]:
+        """Whether each finger touches the cup."""
+        return (
+            self.sim.n_contacts("panda", "cup", link_a=FINGER_LINKS[0]) > 0,
+            self.sim.n_contacts("panda", "cup", link_a=FINGER_LINKS[1]) > 0,
+        )
+
+    def robot_touches_cup(self) -> bool:
+        return self.sim.n_contacts("panda", "cup") > 0
+
+    def cup_on_table(self) -> bool:
+        return self.sim.n_contacts("cup", "table") > 0
+
+    def task_points(self) -> dict[str, NDArray[np.float64]]:
+        """Points of the task in the world frame (see ``docs/CONTRACTS.md``)."""
+        cup_pos, _ = self.cup_pose()
+        rot = self.machine_rotation
+        return {
+            "cup_pos": cup_pos,
+            "cup_radius": np.array(CUP_RADIUS),
+            "cup_height": np.array(CUP_HEIGHT),
+            "place_pos": self.machine_point(PLACE_OFFSET),
+            "place_tolerance": np.array(PLACE_TOLERANCE),
+            "button_pos": self.machine_point(BUTTON_FACE_OFFSET),
+            "button_axis": rot[:, 0].copy(),
+            "button_travel_to_press": np.array(BUTTON_PRESS_TRAVEL),
+        }

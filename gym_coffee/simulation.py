@@ -1,0 +1,321 @@
+"""The PyBullet wrapper: the only module of gym-coffee that imports ``pybullet``.
+
+Each :class:`Simulation` owns one physics server (a ``BulletClient``), so two environments in one
+process
+never share state. Bodies are addressed by name.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from contextlib import suppress
+
+import numpy as np
+import pybullet
+import pybullet_data
+from numpy.typing import ArrayLike, NDArray
+from pybullet_utils import bullet_client
+
+__all__ = ["ASSETS_DIR", "Simulation"]
+
+#: Folder of the package's URDF assets (cup, coffee machine, table).
+ASSETS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
+
+logger = logging.getLogger(__name__)
+
+
+def display_available() -> bool:
+    """Whether a GUI can open (on Linux: an X11 or Wayland display is set)."""
+    if sys.platform.startswith("linux"):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+class Simulation:
+    """One PyBullet physics server with bodies addressed by name.
+
+    Args:
+        render_mode: ``"human"`` opens the PyBullet GUI; anything else runs headless (``DIRECT``).
+        timestep: physics time step (s).
+        n_substeps: physics steps per :meth:`step`.
+        solver_iterations: constraint-solver iterations per physics step.
+    """
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        *,
+        timestep: float = 1.0 / 250.0,
+        n_substeps: int = 10,
+        solver_iterations: int = 50,
+    ) -> None:
+        self.render_mode = render_mode
+        self.gui = render_mode == "human" and display_available()
+        if render_mode == "human" and not self.gui:
+            # PyBullet's GUI would hang or abort without a display (e.g. in check_env on CI).
+            logger.warning("render_mode='human' but no display is available: running headless")
+        mode = pybullet.GUI if self.gui else pybullet.DIRECT
+        self.client: bullet_client.BulletClient | None = bullet_client.BulletClient(
+            connection_mode=mode
+        )
+        if self.gui:
+            self.client.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0)
+        self.timestep = float(timestep)
+        self.n_substeps = int(n_substeps)
+        self.solver_iterations = int(solver_iterations)
+        self.bodies: dict[str, int] = {}
+        self._inertial_offset: dict[str, NDArray[np.float64]] = {}
+        self._state_id: int | None = None
+        self.reset_world()
+
+    # ------------------------------------------------------------------ world
+    @property
+    def dt(self) -> float:
+        """Simulated time (s) per :meth:`step`."""
+        return self.timestep * self.n_substeps
+
+    @property
+    def p(self) -> bullet_client.BulletClient:
+        if self.client is None:
+            raise RuntimeError("the simulation is closed")
+        return self.client
+
+    def reset_world(self) -> None:
+        """Remove every body and restore the physics parameters."""
+        p = self.p
+        p.resetSimulation()
+        p.setGravity(0.0, 0.0, -9.81)
+        p.setPhysicsEngineParameter(
+            fixedTimeStep=self.timestep,
+            numSubSteps=0,
+            numSolverIterations=self.solver_iterations,
+            deterministicOverlappingPairs=1,
+        )
+        self.bodies.clear()
+        self._inertial_offset.clear()
+        self._state_id = None
+
+    def step(self) -> None:
+        """Advance the physics by ``n_substeps`` physics steps."""
+        step = self.p.stepSimulation
+        for _ in range(self.n_substeps):
+            step()
+
+    def save_state(self) -> None:
+        """Remember the whole physics state (in memory) for :meth:`restore_state`."""
+        if self._state_id is not None:
+            self.p.removeState(self._state_id)
+        self._state_id = self.p.saveState()
+
+    def restore_state(self) -> None:
+        """Restore the state remembered by :meth:`save_state`."""
+        if self._state_id is None:
+            raise RuntimeError("no saved state")
+        self.p.restoreState(stateId=self._state_id)
+
+    def close(self) -> None:
+        """Disconnect from the physics server (safe to call more than once)."""
+        if self.client is not None:
+            with suppress(Exception):
+                self.client.disconnect()
+            self.client = None
+        self.bodies.clear()
+
+    def __del__(self) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ bodies
+    def load_urdf(
+        self,
+        name: str,
+        file_name: str,
+        base_position: ArrayLike = (0.0, 0.0, 0.0),
+        base_orientation: ArrayLike = (0.0, 0.0, 0.0, 1.0),
+        *,
+        use_fixed_base: bool = False,
+        package_asset: bool = True,
+    ) -> int:
+        """Load a URDF as body ``name``; ``package_asset`` picks gym-coffee's assets over
+        pybullet_data's."""
+        path = os.path.join(ASSETS_DIR if package_asset else pybullet_data.getDataPath(), file_name)
+        body = self.p.loadURDF(
+            path,
+            basePosition=list(map(float, base_position)),
+            baseOrientation=list(map(float, base_orientation)),
+            useFixedBase=use_fixed_base,
+            flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES,
+        )
+        self.bodies[name] = body
+        # PyBullet reports and resets a base by its inertial frame; keep the offset to the URDF
+        # frame.
+        self._inertial_offset[name] = np.array(self.p.getDynamicsInfo(body, -1)[3])
+        return body
+
+    def remove_body(self, name: str) -> None:
+        """Remove body ``name`` from the world."""
+        self.p.removeBody(self.bodies.pop(name))
+        self._inertial_offset.pop(name, None)
+
+    def set_base_pose(self, name: str, position: ArrayLike, orientation: ArrayLike) -> None:
+        """Put the base's URDF link frame at ``position`` with quaternion ``orientation`` (xyzw),
+        at rest."""
+        position = np.asarray(position, dtype=float)
+        orientation = [float(v) for v in orientation]
+        offset = self._inertial_offset[name]
+        if offset.any():
+            rot = np.array(self.p.getMatrixFromQuaternion(orientation)).reshape(3, 3)
+            position = position + rot @ offset
+        self.p.resetBasePositionAndOrientation(self.bodies[name], position.tolist(), orientation)
+        self.p.resetBaseVelocity(self.bodies[name], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+
+    def get_base_pose(self, name: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Position (3,) and quaternion (4,) xyzw of the base's URDF link frame."""
+        pos, quat = self.p.getBasePositionAndOrientation(self.bodies[name])
+        pos = np.array(pos)
+        offset = self._inertial_offset[name]
+        if offset.any():
+            rot = np.array(self.p.getMatrixFromQuaternion(quat)).reshape(3, 3)
+            pos = pos - rot @ offset
+        return pos, np.array(quat)
+
+    def get_matrix_from_quaternion(self, quat: ArrayLike) -> NDArray[np.float64]:
+        return np.array(self.p.getMatrixFromQuaternion([float(v) for v in quat])).reshape(3, 3)
+
+    def get_base_velocity(self, name: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        lin, ang = self.p.getBaseVelocity(self.bodies[name])
+        return np.array(lin), np.array(ang)
+
+    def get_link_pose(
+        self, name: str, link: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World position (3,) and quaternion (4,) of a link's URDF frame."""
+        state = self.p.getLinkState(self.bodies[name], link, computeForwardKinematics=True)
+        return np.array(state[4]), np.array(state[5])
+
+    def get_joint_states(
+        self, name: str, joints: Sequence[int]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Positions and velocities of the given joints."""
+        states = self.p.getJointStates(self.bodies[name], list(joints))
+        return np.array([s[0] for s in states]), np.array([s[1] for s in states])
+
+    def reset_joint_states(self, name: str, joints: Sequence[int], positions: ArrayLike) -> None:
+        body = self.bodies[name]
+        for joint, value in zip(joints, np.asarray(positions, dtype=float), strict=True):
+            self.p.resetJointState(body, joint, float(value), 0.0)
+
+    def control_joints(
+        self,
+        name: str,
+        joints: Sequence[int],
+        targets: ArrayLike,
+        forces: ArrayLike,
+        max_velocities: ArrayLike | None = None,
+        position_gain: float = 0.1,
+    ) -> None:
+        """Position control of the given joints with force and (optionally) velocity limits."""
+        body = self.bodies[name]
+        control = self.p.setJointMotorControl2
+        targets = np.asarray(targets, dtype=float)
+        forces = np.asarray(forces, dtype=float)
+        if max_velocities is None:
+            for j, t, f in zip(joints, targets, forces, strict=True):
+                control(
+                    body,
+                    j,
+                    pybullet.POSITION_CONTROL,
+                    targetPosition=float(t),
+                    force=float(f),
+                    positionGain=position_gain,
+                )
+        else:
+            vel = np.asarray(max_velocities, dtype=float)
+            for j, t, f, v in zip(joints, targets, forces, vel, strict=True):
+                control(
+                    body,
+                    j,
+                    pybullet.POSITION_CONTROL,
+                    targetPosition=float(t),
+                    force=float(f),
+                    maxVelocity=float(v),
+                    positionGain=position_gain,
+                )
+
+    def set_dynamics(self, name: str, link: int, **kwargs: float) -> None:
+        """``changeDynamics`` of one link (keyword names as in PyBullet: lateralFriction, ...)."""
+        self.p.changeDynamics(self.bodies[name], link, **kwargs)
+
+    def n_contacts(
+        self, name_a: str, name_b: str, link_a: int | None = None, link_b: int | None = None
+    ) -> int:
+        """Number of contact points between two bodies (optionally restricted to links)."""
+        kwargs = {}
+        if link_a is not None:
+            kwargs["linkIndexA"] = link_a
+        if link_b is not None:
+            kwargs["linkIndexB"] = link_b
+        return len(self.p.getContactPoints(self.bodies[name_a], self.bodies[name_b], **kwargs))
+
+    def contact_normal_force(self, name_a: str, name_b: str, link_a: int | None = None) -> float:
+        kwargs = {} if link_a is None else {"linkIndexA": link_a}
+        points = self.p.getContactPoints(self.bodies[name_a], self.bodies[name_b], **kwargs)
+        return float(sum(pt[9] for pt in points))
+
+    # ------------------------------------------------------------------ rendering
+    def render(
+        self,
+        width: int,
+        height: int,
+        target: ArrayLike,
+        distance: float,
+        yaw: float,
+        pitch: float,
+        fov: float = 45.0,
+    ) -> NDArray[np.uint8]:
+        """RGB image (height, width, 3) from a camera looking at ``target`` (TinyRenderer,
+        headless)."""
+        p = self.p
+        view = p.computeViewMatrixFromYawPitchRoll(
+            cameraTargetPosition=list(map(float, target)),
+            distance=float(distance),
+            yaw=float(yaw),
+            pitch=float(pitch),
+            roll=0.0,
+            upAxisIndex=2,
+        )
+        proj = p.computeProjectionMatrixFOV(
+            fov=fov, aspect=width / height, nearVal=0.05, farVal=5.0
+        )
+        renderer = pybullet.ER_BULLET_HARDWARE_OPENGL if self.gui else pybullet.ER_TINY_RENDERER
+        _, _, rgba, _, _ = p.getCameraImage(
+            width=int(width),
+            height=int(height),
+            viewMatrix=view,
+            projectionMatrix=proj,
+            shadow=1,
+            lightDirection=[0.6, -0.4, 1.0],
+            renderer=renderer,
+        )
+        rgba = np.asarray(rgba, dtype=np.uint8).reshape(int(height), int(width), 4)
+        return np.ascontiguousarray(rgba[..., :3])
+
+    def reset_debug_camera(
+        self, target: ArrayLike, distance: float, yaw: float, pitch: float
+    ) -> None:
+        if self.gui:
+            self.p.resetDebugVisualizerCamera(
+                cameraDistance=float(distance),
+                cameraYaw=float(yaw),
+                cameraPitch=float(pitch),
+                cameraTargetPosition=list(map(float, target)),
+            )
+
+    # ------------------------------------------------------------------ helpers
+    def get_euler_from_quaternion(self, quat: ArrayLike) -> NDArray[np.float64]:
+        return np.array(self.p.getEulerFromQuaternion(list(map(float, quat))))
+
+    def get_quaternion_from_euler(self, euler: ArrayLike) -> NDArray[np.float64]:
+        return np.array(self.p.getQuaternionFromEuler(list(map(float, euler))))
