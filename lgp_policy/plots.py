@@ -134,7 +134,7 @@ def rollout_trace(policy: Any, seed: int, *, env_id: str = "gym_coffee/CoffeeTas
 
     Returns:
         ``{"phase" (n,), "ee_pos" (n, 3), "joint_pos" (n, 7), "joint_std" (n, 7),
-        "targets": {frame: (n, 3) world targets}, "info": last info}``.
+        "targets": {frame: (n, 3) world targets}, "reached": {stage: bool}}``.
     """
     import gymnasium as gym
 
@@ -149,6 +149,7 @@ def rollout_trace(policy: Any, seed: int, *, env_id: str = "gym_coffee/CoffeeTas
         frames = object_frames(obs)
         log: dict[str, list[Any]] = {"phase": [], "ee_pos": [], "joint_pos": [], "joint_std": []}
         targets: dict[str, list[Any]] = {n: [] for n in policy.frame_names_ if n in frames}
+        reached = {k: bool(info.get(k, False)) for k in STAGE_LABELS}
         done = False
         while not done:
             dist = policy.predict_distribution(obs)
@@ -162,12 +163,14 @@ def rollout_trace(policy: Any, seed: int, *, env_id: str = "gym_coffee/CoffeeTas
                 o, R = frames[n]
                 targets[n].append(frame_estimate(o, R, m, np.ones(3)).position)
             obs, _r, terminated, truncated, info = env.step(dist.action[0])
+            for k in reached:
+                reached[k] |= bool(info.get(k, False))
             done = bool(terminated or truncated)
     finally:
         env.close()
     out = {k: np.asarray(v) for k, v in log.items()}
     out["targets"] = {n: np.asarray(v) for n, v in targets.items()}
-    out["info"] = dict(info)
+    out["reached"] = reached
     return out
 
 
@@ -176,35 +179,33 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     end-effector path (solid red); (b) joint space, the reproduced joints with the remaining
     +-2 std of the fused estimate and the joint-space GP mean."""
     plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig = plt.figure(figsize=(12, 6.5))
+    grid = fig.add_gridspec(3, 2, width_ratios=(1.0, 1.1))
+    task_axes = [fig.add_subplot(grid[r, 0]) for r in range(3)]
     s = trace["phase"]
-    ax = axes[0]
     styles = {"cup": ":", "machine": "--"}
     for r, axis in enumerate(AXES):
+        ax = task_axes[r]
         for n, tgt in trace["targets"].items():
             ax.plot(
                 s,
                 tgt[:, r],
                 ls=styles.get(n, "-."),
                 color=FRAME_COLORS.get(n, "tab:purple"),
-                lw=1.2,
-                label=f"policy rel. to {n}" if r == 0 else None,
+                lw=1.4,
+                label=f"policy rel. to {n}",
             )
-        ax.plot(
-            s,
-            trace["ee_pos"][:, r],
-            color="tab:red",
-            lw=2,
-            label="resulting policy" if r == 0 else None,
-        )
-        ax.text(s[-1], trace["ee_pos"][-1, r], f" {axis}", va="center", fontsize=9)
-    _stage_lines(ax, policy)
-    ax.set_xlabel("normalised time")
-    ax.set_ylabel("end-effector position, world (m)")
-    ax.set_title("(a) reproduction in task space", fontsize=10)
-    ax.legend(fontsize=8, loc="best")
-    ax.grid(alpha=0.3)
-    ax = axes[1]
+        ax.plot(s, trace["ee_pos"][:, r], color="tab:red", lw=2, label="resulting policy")
+        ax.set_ylabel(f"{axis} (m)")
+        ax.grid(alpha=0.3)
+        if r == 0:
+            _stage_lines(ax, policy)
+            ax.set_title("(a) reproduction in task space (world frame)", fontsize=10, pad=14)
+            ax.legend(fontsize=7, loc="best")
+        if r < 2:
+            ax.tick_params(labelbottom=False)
+    task_axes[-1].set_xlabel("normalised time")
+    ax = fig.add_subplot(grid[:, 1])
     q, qs = trace["joint_pos"], trace["joint_std"]
     colors = plt.get_cmap("tab10")
     for j in range(q.shape[1]):
@@ -220,8 +221,8 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     ax.set_title("(b) reproduction in joint space (dashed: joint-space GP mean)", fontsize=10)
     ax.legend(fontsize=7, ncol=4, loc="best")
     ax.grid(alpha=0.3)
-    info = trace.get("info", {})
-    flags = ", ".join(f"{STAGE_LABELS[k]} {'yes' if info.get(k) else 'no'}" for k in STAGE_LABELS)
+    reached = trace.get("reached", {})
+    flags = ", ".join(f"{v} {'yes' if reached.get(k) else 'no'}" for k, v in STAGE_LABELS.items())
     fig.suptitle(f"Reproduction on a new layout (cf. Fig. 5): {flags}", fontsize=10)
     fig.tight_layout()
     path = Path(path)
