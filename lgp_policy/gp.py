@@ -184,6 +184,15 @@ def fit_shared_hyperparameters(
     return theta
 
 
+def _cholesky_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(L L^T)^{-1}`` from the lower Cholesky factor (LAPACK ``potri``)."""
+    inv, info = scipy.linalg.lapack.dpotri(L, lower=1)
+    if info != 0:  # pragma: no cover - L comes from a successful factorisation
+        return scipy.linalg.cho_solve((L, True), np.eye(L.shape[0]), check_finite=False)
+    inv = np.tril(inv)
+    return inv + np.tril(inv, -1).T
+
+
 class _Replicates:
     """Training data grouped by unique input (exact sufficient statistics for a GP).
 
@@ -410,7 +419,7 @@ class GaussianProcess:
         if not eval_gradient:
             return lml
         grad = np.zeros_like(theta)
-        Kinv = scipy.linalg.cho_solve((L, True), np.eye(K.shape[0]), check_finite=False)
+        Kinv = _cholesky_inverse(L)
         A = a @ a.T - n_t * Kinv  # dLML/dK_y = A / 2
         for j, G in grads:
             grad[j] = 0.5 * float(np.sum(A * G))
