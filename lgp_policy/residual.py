@@ -65,6 +65,7 @@ __all__ = [
     "RL_EXTRA_HINT",
     "ActuationNoiseWrapper",
     "FinetuneResult",
+    "ObsNormalizer",
     "PhaseGate",
     "ResidualPolicy",
     "ResidualPolicyFormatError",
@@ -801,6 +802,40 @@ def _atomic_savez(path: Path, arrays: Mapping[str, NDArray[Any]], overwrite: boo
         raise
 
 
+@dataclass
+class ObsNormalizer:
+    """SB3 ``VecNormalize``'s observation normalisation, frozen as arrays:
+    ``clip((x - mean) / sqrt(var + epsilon), -clip_obs, clip_obs)``."""
+
+    mean: NDArray[np.float64]
+    var: NDArray[np.float64]
+    epsilon: float = 1e-8
+    clip_obs: float = 10.0
+
+    def __call__(self, x: NDArray[Any]) -> NDArray[np.float32]:
+        z = (np.asarray(x, np.float64) - self.mean) / np.sqrt(self.var + self.epsilon)
+        return np.clip(z, -self.clip_obs, self.clip_obs).astype(np.float32)
+
+
+class _LiveNormalizer:
+    """The statistics of a training ``VecNormalize``, read at every call (no update)."""
+
+    def __init__(self, vec_normalize: Any) -> None:
+        self.vec_normalize = vec_normalize
+
+    def __call__(self, x: NDArray[Any]) -> NDArray[np.float32]:
+        return np.asarray(self.vec_normalize.normalize_obs(x), dtype=np.float32)
+
+    def freeze(self) -> ObsNormalizer:
+        vn = self.vec_normalize
+        return ObsNormalizer(
+            np.array(vn.obs_rms.mean, np.float64),
+            np.array(vn.obs_rms.var, np.float64),
+            float(vn.epsilon),
+            float(vn.clip_obs),
+        )
+
+
 class ResidualPolicy:
     """A base policy plus a learned residual: ``clip(base + scale * gate * residual)``.
 
@@ -819,6 +854,8 @@ class ResidualPolicy:
         action_space: the env's action space (for the clip; default ``Box(-1, 1)``).
         algo, hyperparameters: recorded in the file.
         base_path: the base policy's file, embedded into (or referenced by) :meth:`save`.
+        obs_normalizer: applied to the agent observation before the residual network (the
+            training ``VecNormalize``'s statistics; saved with the policy).
     """
 
     def __init__(
@@ -834,9 +871,11 @@ class ResidualPolicy:
         algo: str | None = None,
         hyperparameters: Mapping[str, Any] | None = None,
         base_path: str | os.PathLike[str] | None = None,
+        obs_normalizer: Callable[[NDArray[Any]], NDArray[np.float32]] | None = None,
     ) -> None:
         self.base = base
         self.model = model
+        self.obs_normalizer = obs_normalizer
         self.scale = float(scale)
         self.gate = gate if gate is not None else PhaseGate()
         model_obs = getattr(model, "observation_space", None)
@@ -898,7 +937,10 @@ class ResidualPolicy:
         residual = np.zeros((obs.shape[0], self.residual_dims.size), np.float32)
         open_rows = gate > 0
         if np.any(open_rows):  # the residual network is only run where the gate is open
-            res, _ = self.model.predict(agent_obs[open_rows], deterministic=deterministic)
+            net_obs = agent_obs[open_rows]
+            if self.obs_normalizer is not None:
+                net_obs = self.obs_normalizer(net_obs)
+            res, _ = self.model.predict(net_obs, deterministic=deterministic)
             residual[open_rows] = np.asarray(res, dtype=np.float32).reshape(-1, residual.shape[1])
         applied = _compose(
             base_action, gate, residual, self.scale, self.residual_dims, self._low, self._high
@@ -940,6 +982,18 @@ class ResidualPolicy:
         arrays["space/obs_high"] = model_obs.high.astype(np.float32)
         arrays["space/act_low"] = self._low
         arrays["space/act_high"] = self._high
+        norm_cfg: dict[str, float] | None = None
+        if self.obs_normalizer is not None:
+            frozen = self.obs_normalizer
+            if isinstance(frozen, _LiveNormalizer):
+                frozen = frozen.freeze()
+            if not isinstance(frozen, ObsNormalizer):
+                raise TypeError(
+                    f"cannot save an observation normaliser of type {type(frozen).__name__}"
+                )
+            arrays["obs_norm/mean"] = np.asarray(frozen.mean, np.float64)
+            arrays["obs_norm/var"] = np.asarray(frozen.var, np.float64)
+            norm_cfg = {"epsilon": frozen.epsilon, "clip_obs": frozen.clip_obs}
         base_ref: dict[str, Any] | None = None
         if self.base_path is not None:
             base_file = self.base_path.resolve()
@@ -962,6 +1016,7 @@ class ResidualPolicy:
             "gate": to_config(),
             "residual_dims": self.residual_dims.tolist(),
             "include_gate_obs": self.include_gate_obs,
+            "obs_norm": norm_cfg,
             "obs_dim": self.obs_dim,
             "action_dim": int(self._low.shape[0]),
             "param_names": sorted(k[len("param/") :] for k in arrays if k.startswith("param/")),
@@ -1039,6 +1094,22 @@ class ResidualPolicy:
         model.policy.load_state_dict(
             {k: torch.as_tensor(stored[k], dtype=expected[k].dtype) for k in expected}
         )
+        normalizer = None
+        if meta.get("obs_norm") is not None:
+            mean, var = arrays.get("obs_norm/mean"), arrays.get("obs_norm/var")
+            if mean is None or var is None:
+                raise ResidualPolicyFormatError(f"{path}: 'obs_norm/mean' or '/var' is missing")
+            if mean.shape != obs_space.shape or var.shape != obs_space.shape:
+                raise ResidualPolicyFormatError(
+                    f"{path}: observation statistics have shapes {mean.shape}/{var.shape}, "
+                    f"expected {obs_space.shape}"
+                )
+            if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
+                raise ResidualPolicyFormatError(f"{path}: observation statistics are not finite")
+            cfg = meta["obs_norm"]
+            normalizer = ObsNormalizer(
+                mean, var, float(cfg.get("epsilon", 1e-8)), float(cfg.get("clip_obs", 10.0))
+            )
         if base is None:
             base, base_path = _load_base(path, meta, arrays)
         else:
@@ -1054,6 +1125,7 @@ class ResidualPolicy:
             algo=meta["algo"],
             hyperparameters=meta["hyperparameters"],
             base_path=base_path,
+            obs_normalizer=normalizer,
         )
         base_obs = getattr(base, "observation_space", None)
         if base_obs is not None and getattr(base_obs, "shape", None) not in (
@@ -1278,6 +1350,7 @@ def finetune(
     include_gate_obs: bool = True,
     skip_ungated: bool = True,
     reward_fn: Callable[[float, Mapping[str, Any], Mapping[str, Any]], float] | None = press_reward,
+    normalize_obs: bool = True,
     n_envs: int = 1,
     hyperparameters: Mapping[str, Any] | None = None,
     eval_env_fn: Callable[[], gym.Env] | None = None,
@@ -1310,6 +1383,9 @@ def finetune(
         out_dir: where ``residual_policy.npz``, ``learning_curve.png``/``.json`` and the
             checkpoints go (nothing is written without it).
         base_path: the base's file, embedded into the saved policies.
+        normalize_obs: wrap the training envs in SB3's ``VecNormalize`` (observations only;
+            the agent observation mixes seconds, radians, metres and a 0-8 mm button travel);
+            its statistics are frozen into the returned policy and saved with it.
         reward_fn: the agent's reward per env step (default :func:`press_reward`, which is the
             env's reward for envs without the coffee task's reward terms).
 
@@ -1355,6 +1431,12 @@ def finetune(
     fns = [make_wrapped(i) for i in range(n_envs)]
     vec_env = SubprocVecEnv(fns) if n_envs > 1 else DummyVecEnv(fns)
     vec_env.seed(seed)
+    normalizer = None
+    if normalize_obs:
+        from stable_baselines3.common.vec_env import VecNormalize
+
+        vec_env = VecNormalize(vec_env, norm_obs=True, norm_reward=False, clip_obs=10.0)
+        normalizer = _LiveNormalizer(vec_env)
     model = _build_model(algo, vec_env, hp, seed=seed, verbose=verbose)
     seeds = (
         list(eval_seeds)
@@ -1378,6 +1460,7 @@ def finetune(
         algo=algo,
         hyperparameters=hp,
         base_path=base_path,
+        obs_normalizer=normalizer,
     )
     curve: list[dict[str, Any]] = []
     t0 = time.perf_counter()
@@ -1444,6 +1527,8 @@ def finetune(
         vec_env.close()
         if eval_env is not None:
             eval_env.close()
+    if isinstance(policy.obs_normalizer, _LiveNormalizer):
+        policy.obs_normalizer = policy.obs_normalizer.freeze()
     result = FinetuneResult(
         policy=policy,
         curve=curve,

@@ -287,6 +287,7 @@ def test_tiny_finetune_saves_a_policy_that_loads_and_predicts_identically(tmp_pa
     path = run / "residual_policy.npz"
     with np.load(path, allow_pickle=False) as data:  # nothing pickled
         assert all(data[k].dtype != object for k in data.files)
+        assert "obs_norm/mean" in data.files  # VecNormalize statistics travel with the weights
 
     loaded = ResidualPolicy.load(path, base=base)
     obs = np.stack([make_pendulum().observation_space.sample() for _ in range(64)])
@@ -388,6 +389,7 @@ def test_malformed_files_give_clear_errors(tmp_path):
         "shape": (bad_shape, "shape"),
         "nan": (nan_weight, "NaN"),
         "meta": (lambda a: a.pop("metadata"), "metadata"),
+        "norm": (lambda a: a.pop("obs_norm/var"), "obs_norm"),
     }
     for name, (edit, message) in cases.items():
         bad = _rewrite(path, tmp_path / f"bad_{name}.npz", edit)
