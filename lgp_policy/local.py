@@ -100,6 +100,9 @@ class LocalGP:
         assignments_: ``(n_samples,)`` index of the model each training point belongs to.
         models_: the fitted local models (:class:`GaussianProcess` or
             :class:`HeteroscedasticGP`), fitted to globally standardised targets.
+        estimators_: ``None``, or for heteroscedastic local models and a 2-D ``y`` one
+            independent ``LocalGP`` per target (same ``centers_`` and ``assignments_``);
+            ``models_`` is then a list (per target) of lists.
     """
 
     def __init__(
@@ -248,6 +251,18 @@ class LocalGP:
         """
         X, y = check_X_y(X, y)
         self._check_params()
+        self.estimators_ = None
+        if self.local_model == "heteroscedastic" and y.ndim == 2:
+            # One noise process per output: an independent LocalGP per column (same clusters).
+            rng = check_random_state(self.random_state)
+            params = {**self.get_params(), "random_state": rng}
+            self.estimators_ = [LocalGP(**params).fit(X, y[:, j]) for j in range(y.shape[1])]
+            first = self.estimators_[0]
+            self.X_train_, self.y_train_ = X, y
+            self.n_features_in_ = X.shape[1]
+            self.centers_, self.assignments_ = first.centers_, first.assignments_
+            self.models_ = [e.models_ for e in self.estimators_]
+            return self
         kernel = default_kernel() if self.kernel is None else self.kernel
         self._assign_kernel = signal_kernel(kernel)
         self._single_target = y.ndim == 1
@@ -276,11 +291,6 @@ class LocalGP:
         if self.local_model == "exact":
             self.models_ = self._fit_exact(kernel, X, Yn, index_sets, rng)
         else:
-            if not self._single_target:
-                raise ValueError(
-                    "local_model='heteroscedastic' needs a 1-D y (one noise process per output); "
-                    "fit one LocalGP per column"
-                )
             self.models_ = self._fit_heteroscedastic(kernel, X, Yn[:, 0], index_sets, rng)
         self._prepare_prediction()
         return self
@@ -447,9 +457,17 @@ class LocalGP:
     def _out(self, a):
         return a[:, 0] if self._single_target else a
 
+    def _stack(self, method: str, X, **kw):
+        outs = [getattr(est, method)(X, **kw) for est in self.estimators_]
+        if isinstance(outs[0], tuple):
+            return tuple(np.stack(parts, axis=1) for parts in zip(*outs, strict=True))
+        return np.stack(outs, axis=1)
+
     def predict(self, X: ArrayLike, return_std: bool = False):
         """Combined mean and, with ``return_std``, std including the noise ``r(x)``."""
         self._check_fitted()
+        if self.estimators_:
+            return self._stack("predict", X, return_std=return_std)
         X = check_X(X, n_features=self.n_features_in_)
         mean, v, r = self._combine(X)
         mean_out = self._out(mean * self._y_std + self._y_mean)
@@ -460,6 +478,8 @@ class LocalGP:
     def predict_latent(self, X: ArrayLike):
         """Combined latent mean and noise-free std."""
         self._check_fitted()
+        if self.estimators_:
+            return self._stack("predict_latent", X)
         X = check_X(X, n_features=self.n_features_in_)
         mean, v, _ = self._combine(X)
         return self._out(mean * self._y_std + self._y_mean), self._out(np.sqrt(v) * self._y_std)
@@ -467,6 +487,8 @@ class LocalGP:
     def noise_variance(self, X: ArrayLike) -> NDArray[np.float64]:
         """Noise variance ``r(x)`` blended from the local models, in units of y^2."""
         self._check_fitted()
+        if self.estimators_:
+            return self._stack("noise_variance", X)
         X = check_X(X, n_features=self.n_features_in_)
         _, _, r = self._combine(X)
         return self._out(r * self._y_std**2)
@@ -476,6 +498,8 @@ class LocalGP:
         self._check_fitted()
         if theta is not None or eval_gradient:
             raise ValueError("LocalGP.log_marginal_likelihood supports only theta=None")
+        if self.estimators_:
+            return float(sum(e.log_marginal_likelihood() for e in self.estimators_))
         return float(sum(m.log_marginal_likelihood() for m in self.models_))
 
 

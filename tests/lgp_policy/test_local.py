@@ -156,8 +156,12 @@ def test_deterministic_and_multi_target():
     assert mean.shape == std.shape == (21, 2)
     np.testing.assert_allclose(mean[:, 1], -2.0 * mean[:, 0], atol=1e-8)
     assert np.isfinite(a.log_marginal_likelihood())
-    with pytest.raises(ValueError, match="1-D y"):
-        LocalGP(kernel(), local_model="heteroscedastic").fit(X, Y)
+    het = LocalGP(kernel(), max_points=200, random_state=1).fit(X, Y)
+    mean, std = het.predict(Xs, return_std=True)
+    assert mean.shape == std.shape == het.noise_variance(Xs).shape == (21, 2)
+    assert len(het.models_) == 2 and len(het.models_[0]) == len(het.centers_)
+    single = LocalGP(kernel(), max_points=200, random_state=het.estimators_[0].random_state)
+    np.testing.assert_allclose(single.fit(X, y).predict(Xs), mean[:, 0], atol=1e-6)
 
 
 @pytest.mark.parametrize(
