@@ -313,12 +313,14 @@ class GaussianProcess:
         alpha = np.broadcast_to(np.asarray(self.alpha, dtype=np.float64), (X.shape[0],))
         has_noise = any(leaf.is_noise for leaf in kernel.leaves())
         collapse = self.collapse_replicates and (has_noise or np.all(alpha > 0))
+        self._sqdist_cache = None
         self._data = _Replicates(X, Yn, collapse)
         if self._data.collapsed:
             a_u = np.zeros(self._data.X.shape[0])
             a_u[self._data.inverse] = alpha
             if not np.allclose(alpha, a_u[self._data.inverse], rtol=1e-12, atol=0.0):
                 self._data = _Replicates(X, Yn, False)  # alpha differs within a group
+                self._sqdist_cache = None
                 a_u = alpha.copy()
         else:
             a_u = alpha.copy()
@@ -367,38 +369,62 @@ class GaussianProcess:
         self._solve()
 
     # ----------------------------------------------------------- linear algebra
-    def _noise_and_signal(self, kernel: Kernel, X: NDArray[np.float64], eval_gradient: bool):
-        """Signal covariance on ``X`` (+ gradient) and the white-noise variance (+ its indices)."""
+    def _noise_and_signal(
+        self,
+        kernel: Kernel,
+        X: NDArray[np.float64],
+        eval_gradient: bool,
+        theta: NDArray[np.float64] | None = None,
+    ):
+        """Signal covariance on ``X`` (+ gradient) and the white-noise variance (+ its indices).
+
+        With ``theta`` (log space) the kernel's own hyperparameters are ignored; isotropic
+        squared-exponential terms then reuse the cached squared distances of the training inputs.
+        """
         K = np.zeros((X.shape[0], X.shape[0]))
         grads: list[tuple[int, NDArray[np.float64]]] = []
         noise, noise_idx = 0.0, []
         start = 0
         for leaf in kernel.leaves():
             p = leaf.n_dims
+            sub = None if theta is None else theta[start : start + p]
             if leaf.is_noise:
-                nl = float(leaf.diag(X[:1])[0])
-                noise += nl
+                noise += float(np.exp(sub[0])) if sub is not None else float(leaf.diag(X[:1])[0])
                 noise_idx.extend(range(start, start + p))
-            elif eval_gradient:
-                Kl, Gl = leaf(X, eval_gradient=True)
-                K += Kl
-                grads.extend((start + j, Gl[:, :, j]) for j in range(p))
             else:
-                K += leaf(X)
+                if sub is not None and isinstance(leaf, SquaredExponential) and p == 2:
+                    out = leaf.from_sqdist(sub, self._training_sqdist(), eval_gradient)
+                    Kl = out[0] if eval_gradient else out
+                    if eval_gradient:
+                        grads.extend((start + j, G) for j, G in enumerate(out[1]))
+                else:
+                    k = leaf if sub is None else leaf.clone_with_theta(sub)
+                    out = k(X, eval_gradient=eval_gradient)
+                    Kl = out[0] if eval_gradient else out
+                    if eval_gradient:
+                        grads.extend((start + j, out[1][:, :, j]) for j in range(p))
+                K += Kl
             start += p
         return K, grads, noise, noise_idx
+
+    def _training_sqdist(self) -> NDArray[np.float64]:
+        """Squared Euclidean distances between the (unique) training inputs, cached."""
+        if getattr(self, "_sqdist_cache", None) is None:
+            X = self._data.X
+            if X.shape[1] == 1:
+                d2 = (X[:, 0][:, None] - X[:, 0][None, :]) ** 2
+            else:
+                sq = np.sum(X**2, axis=1)
+                d2 = np.maximum(sq[:, None] + sq[None, :] - 2.0 * X @ X.T, 0.0)
+            self._sqdist_cache = d2
+        return self._sqdist_cache
 
     def _lml(self, theta: NDArray[np.float64], eval_gradient: bool):
         """Eq. (4) of the *full* data at ``theta``, via the unique inputs when collapsed."""
         self.n_lml_evaluations_ = getattr(self, "n_lml_evaluations_", 0) + 1
-        kernel = self.kernel_
-        old = kernel.theta
-        kernel.theta = theta
-        try:
-            d = self._data
-            K, grads, noise, noise_idx = self._noise_and_signal(kernel, d.X, eval_gradient)
-        finally:
-            kernel.theta = old
+        theta = np.asarray(theta, dtype=np.float64)
+        d = self._data
+        K, grads, noise, noise_idx = self._noise_and_signal(self.kernel_, d.X, eval_gradient, theta)
         s = noise + self._alpha_u  # one observation's noise variance at each unique input
         c = d.counts
         K[np.diag_indices_from(K)] += s / c
@@ -422,7 +448,7 @@ class GaussianProcess:
         Kinv = _cholesky_inverse(L)
         A = a @ a.T - n_t * Kinv  # dLML/dK_y = A / 2
         for j, G in grads:
-            grad[j] = 0.5 * float(np.sum(A * G))
+            grad[j] = 0.5 * float(np.vdot(A, G))
         if noise_idx:
             dnoise = 0.5 * float(np.sum(np.diag(A) / c))
             if d.collapsed:

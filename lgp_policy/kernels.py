@@ -211,6 +211,20 @@ class SquaredExponential(Kernel):
         X = _as_2d(X, "X")
         return np.full(X.shape[0], self.variance)
 
+    @staticmethod
+    def from_sqdist(theta: NDArray[np.float64], sqdist: NDArray[np.float64], eval_gradient: bool):
+        """Isotropic ``k`` from unscaled squared distances and ``theta = log([variance, l])``.
+
+        Lets a solver cache the distances of its training inputs across hyperparameter values.
+        With ``eval_gradient`` returns ``(K, [dK/dtheta_0, dK/dtheta_1])`` (a list of matrices).
+        """
+        d2 = sqdist * np.exp(-2.0 * theta[1])
+        K = np.exp(-0.5 * d2)
+        K *= np.exp(theta[0])  # Eq. (3)
+        if not eval_gradient:
+            return K
+        return K, [K, K * d2]
+
     def get_params(self) -> dict[str, Any]:
         return {
             "variance": self.variance,
