@@ -174,12 +174,13 @@ def record_rollout(
     env_id: str = DEFAULT_ENV_ID,
     env_kwargs: Mapping[str, Any] | None = None,
     fps: float | None = None,
-    every: int = 2,
+    every: int = 3,
 ) -> dict[str, Any]:
     """Roll out ``policy`` on the layout of ``reset(seed=seed)`` and write a video (.mp4 or .gif).
 
     Args:
-        every: keep every ``every``-th frame (smaller files).
+        every: keep every ``every``-th control step as a frame (rendering costs ~0.17 s a
+            frame with PyBullet's TinyRenderer; the video still plays in real time).
 
     Returns:
         The episode's record (stages reached, length) plus ``"video"``: the path written.

@@ -113,6 +113,7 @@ def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0
                         else "no tight interval"
                     ),
                     fontsize=9,
+                    pad=12,
                 )
             ax.set_ylabel(f"{AXES[r]} (m)")
             ax.grid(alpha=0.3)
