@@ -1,0 +1,265 @@
+"""API conformance of every registered gym_coffee env (Gymnasium, SB3, determinism, resources).
+
+Parametrised over :data:`gym_coffee.ENV_IDS`, the way Gymnasium and panda-gym test their envs.
+Checkers run with warnings turned into errors: "passes check_env" means "passes it silently".
+"""
+
+from __future__ import annotations
+
+import gc
+import hashlib
+import os
+import pickle
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import gym_coffee
+
+ENV_IDS = gym_coffee.ENV_IDS
+N_STEPS = 40  # steps per determinism rollout
+
+
+def make(env_id: str, **kwargs) -> gym.Env:
+    return gym.make(env_id, **kwargs)
+
+
+def rollout_digest(env_id: str, seed: int, n_steps: int = N_STEPS) -> str:
+    """sha256 of all observations, rewards, flags and infos of a seeded random-action rollout."""
+    env = make(env_id)
+    try:
+        digest = hashlib.sha256()
+        actions = np.random.default_rng(seed).uniform(-1, 1, (n_steps, *env.action_space.shape))
+        obs, info = env.reset(seed=seed)
+        digest.update(np.ascontiguousarray(obs).tobytes())
+        for action in actions.astype(env.action_space.dtype):
+            obs, reward, terminated, truncated, info = env.step(action)
+            digest.update(np.ascontiguousarray(obs).tobytes())
+            digest.update(np.float64(reward).tobytes())
+            digest.update(repr((terminated, truncated, sorted(info.items()))).encode())
+            if terminated or truncated:
+                obs, info = env.reset()
+        return digest.hexdigest()
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_gymnasium_check_env_without_warnings(env_id):
+    from gymnasium.utils.env_checker import check_env
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = make(env_id, render_mode="rgb_array")
+        try:
+            check_env(env.unwrapped)
+        finally:
+            env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_sb3_check_env_without_warnings(env_id):
+    env_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = make(env_id, render_mode="rgb_array")
+        try:
+            # skip_render_check=True (SB3's default): SB3's render check calls env.close() and
+            # then keeps resetting and stepping the closed env; render is tested below.
+            env_checker.check_env(env, warn=True)
+        finally:
+            env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_passive_env_checker_is_silent_on_a_rollout(env_id):
+    """gym.make wraps in PassiveEnvChecker: a seeded rollout must not warn either."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rollout_digest(env_id, seed=3, n_steps=10)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_same_seed_same_actions_same_observations(env_id):
+    assert rollout_digest(env_id, seed=5) == rollout_digest(env_id, seed=5)
+    assert rollout_digest(env_id, seed=5) != rollout_digest(env_id, seed=6)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_two_envs_in_one_process_do_not_interact(env_id):
+    """Interleaved stepping of two envs gives the same as stepping each alone."""
+    seeds, n = (11, 12), 20
+    envs = [make(env_id) for _ in seeds]
+    try:
+        rngs = [np.random.default_rng(s) for s in seeds]
+        outs = [[env.reset(seed=s)[0]] for env, s in zip(envs, seeds, strict=True)]
+        for _ in range(n):
+            for env, rng, out in zip(envs, rngs, outs, strict=True):
+                out.append(env.step(rng.uniform(-1, 1, 8).astype(np.float32))[0])
+    finally:
+        for env in envs:
+            env.close()
+    for s, out in zip(seeds, outs, strict=True):
+        env = make(env_id)
+        rng = np.random.default_rng(s)
+        try:
+            alone = [env.reset(seed=s)[0]]
+            alone += [env.step(rng.uniform(-1, 1, 8).astype(np.float32))[0] for _ in range(n)]
+        finally:
+            env.close()
+        np.testing.assert_array_equal(np.array(out), np.array(alone))
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_determinism_across_processes(env_id):
+    here = rollout_digest(env_id, seed=7)
+    code = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {os.path.dirname(__file__)!r})
+        from test_env_api import rollout_digest
+        print(rollout_digest({env_id!r}, seed=7))
+        """
+    )
+    env = {**os.environ, "PYTHONHASHSEED": "12345", "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == here
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_pickle_round_trip(env_id):
+    env = make(env_id)
+    try:
+        copy = pickle.loads(pickle.dumps(env))
+        try:
+            # (EzPickle rebuilds the env from its constructor arguments; gym.make's ``spec``
+            # is not part of the pickled state, so it is not compared.)
+            assert type(copy.unwrapped) is type(env.unwrapped)
+            obs_a, info_a = env.reset(seed=21)
+            obs_b, info_b = copy.reset(seed=21)
+            np.testing.assert_array_equal(obs_a, obs_b)
+            assert info_a == info_b
+            action = np.linspace(-1, 1, 8).astype(np.float32)
+            for _ in range(5):
+                a, b = env.step(action), copy.step(action)
+                np.testing.assert_array_equal(a[0], b[0])
+                assert a[1:] == b[1:]
+        finally:
+            copy.close()
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_async_vector_env(env_id):
+    envs = gym.vector.AsyncVectorEnv([lambda: gym.make(env_id)] * 2)
+    try:
+        obs, info = envs.reset(seed=[1, 2])
+        assert obs.shape == (2, *envs.single_observation_space.shape)
+        assert not np.array_equal(obs[0], obs[1])  # different layouts
+        for _ in range(5):
+            obs, reward, terminated, truncated, info = envs.step(envs.action_space.sample())
+        assert obs.shape == (2, *envs.single_observation_space.shape)
+        assert reward.shape == terminated.shape == truncated.shape == (2,)
+        assert "is_success" in info
+        assert envs.single_observation_space.contains(obs[0])
+    finally:
+        envs.close()
+    # Same seeds in a fresh vector env give the same first observations.
+    envs = gym.vector.AsyncVectorEnv([lambda: gym.make(env_id)] * 2)
+    try:
+        again, _ = envs.reset(seed=[1, 2])
+    finally:
+        envs.close()
+    single = make(env_id)
+    try:
+        np.testing.assert_array_equal(again[0], single.reset(seed=1)[0])
+    finally:
+        single.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_close_twice_and_close_without_reset(env_id):
+    env = make(env_id)
+    env.reset(seed=0)
+    env.close()
+    env.close()
+    fresh = make(env_id)
+    fresh.close()
+    fresh.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+@pytest.mark.parametrize("size", [None, (96, 128)])
+def test_rgb_array_render(env_id, size):
+    kwargs = {} if size is None else {"width": size[1], "height": size[0]}
+    try:
+        env = make(env_id, render_mode="rgb_array", **kwargs)
+    except TypeError:
+        pytest.skip("the env takes no width/height arguments")
+    try:
+        env.reset(seed=0)
+        frame = env.render()
+        assert isinstance(frame, np.ndarray)
+        assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+        if size is not None:
+            assert frame.shape[:2] == size
+        assert frame.std() > 5  # something is drawn, not a blank image
+        env.step(env.action_space.sample())
+        assert env.render().shape == frame.shape
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_render_mode_none_returns_none(env_id):
+    env = make(env_id)
+    try:
+        env.reset(seed=0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Gymnasium warns about render() without a mode
+            assert env.render() is None
+    finally:
+        env.close()
+
+
+def _rss_kib() -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    raise RuntimeError("no VmRSS in /proc/self/status")
+
+
+def _n_fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs Linux /proc")
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_make_close_cycles_do_not_leak(env_id):
+    def cycle():
+        env = make(env_id)
+        env.reset(seed=0)
+        env.step(env.action_space.sample())
+        env.close()
+
+    for _ in range(10):  # warm-up: caches, allocator pools, lazily loaded modules
+        cycle()
+    gc.collect()
+    rss0, fds0 = _rss_kib(), _n_fds()
+    for _ in range(200):
+        cycle()
+    gc.collect()
+    rss1, fds1 = _rss_kib(), _n_fds()
+    assert fds1 - fds0 <= 2, f"open file descriptors grew from {fds0} to {fds1}"
+    # 200 cycles; a leak of one body or client per cycle would be far above this.
+    assert rss1 - rss0 < 16 * 1024, f"RSS grew by {(rss1 - rss0) / 1024:.1f} MiB in 200 cycles"
