@@ -746,6 +746,7 @@ def collect_demonstrations(
         "teacher": {
             "class": f"{ScriptedTeacher.__module__}.{ScriptedTeacher.__qualname__}",
             "kwargs": teacher_kwargs,
+            "rng": f"numpy.random.default_rng([{TEACHER_STREAM}, seed])",
         },
         "control_dt": float(getattr(env_module, "CONTROL_DT", math.nan)),
         "obs_slices": {k: [v.start, v.stop] for k, v in OBS_SLICES.items()},
@@ -755,9 +756,23 @@ def collect_demonstrations(
     return DemonstrationSet(demos, metadata)
 
 
+TEACHER_STREAM = 0x7EAC4E2
+"""First entropy word of the teacher's random generator: ``default_rng([TEACHER_STREAM, seed])``.
+
+The env's layout generator is ``default_rng(seed)``-equivalent (Gymnasium seeding); seeding the
+teacher with the bare ``seed`` would make its "human" variation the very same random numbers as
+the layout. A separate stream keeps them independent and still reproducible.
+"""
+
+
+def teacher_rng(seed: int) -> np.random.Generator:
+    """The teacher's random generator for the episode of layout ``seed``."""
+    return np.random.default_rng([TEACHER_STREAM, int(seed)])
+
+
 def _make_teacher(cls: Any, env: Any, seed: int, kwargs: dict[str, Any]) -> Any:
     """Construct the teacher for one episode; its human-like variation is seeded by ``seed``."""
-    return cls(env, seed=seed, **kwargs)
+    return cls(env, rng=teacher_rng(seed), **kwargs)
 
 
 def _record_episode(
@@ -772,14 +787,14 @@ def _record_episode(
     teacher = _make_teacher(teacher_cls, env, seed, teacher_kwargs)
     observations, infos, actions = [obs], [info], []
     for _ in range(max_steps):
-        action = np.asarray(teacher.act(obs, info), dtype=np.float32)
+        action = np.asarray(teacher.act(obs), dtype=np.float32)
         actions.append(action)
         obs, _reward, terminated, truncated, info = env.step(action)
         observations.append(obs)
         infos.append(info)
         if terminated or truncated:
             break
-    actions.append(np.asarray(teacher.act(obs, info), dtype=np.float32))  # not applied
+    actions.append(np.asarray(teacher.act(obs), dtype=np.float32))  # not applied
     return _demonstration_from_steps(seed, observations, infos, actions, obs_part)
 
 
