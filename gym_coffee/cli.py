@@ -13,6 +13,10 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from gym_coffee.demonstrations import Demonstration
 
 DEFAULT_ENV_ID = "gym_coffee/CoffeeTask-v0"
 _LEARNING_COMMANDS = ("fit", "evaluate", "run", "finetune")
@@ -114,26 +118,46 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
-def record_video(env_id: str, demo, path: Path, fps: float | None = None) -> Path:
-    """Replay ``demo``'s actions in a fresh ``rgb_array`` env and write the frames to ``path``.
+VIDEO_FRAME_STRIDE = 2
+"""Render every 2nd control step for ``--video`` (played back at half the control rate, so in real
+time): the headless TinyRenderer takes ~0.1-0.2 s per frame."""
+VIDEO_MAX_FRAMES: int | None = None
+"""Stop a ``--video`` after this many frames (``None``: the whole demonstration)."""
+
+
+def record_video(
+    env_id: str,
+    demo: Demonstration,
+    path: Path,
+    *,
+    stride: int = VIDEO_FRAME_STRIDE,
+    max_frames: int | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+) -> Path:
+    """Replay ``demo``'s actions in a fresh ``rgb_array`` env and write every ``stride``-th frame.
 
     The replay is exact because the env is deterministic for a given seed and action sequence.
+    The video plays in real time (``render_fps / stride`` frames per second).
     """
     import gymnasium as gym
 
     from gym_coffee.video import write_video
 
-    env = gym.make(env_id, render_mode="rgb_array")
+    if max_frames is None:
+        max_frames = VIDEO_MAX_FRAMES
+    env = gym.make(env_id, render_mode="rgb_array", **(env_kwargs or {}))
     try:
         env.reset(seed=demo.seed)
         frames = [env.render()]
-        for action in demo.actions[:-1]:  # the last action was never applied
+        for t, action in enumerate(demo.actions[:-1], start=1):  # the last one was not applied
+            if max_frames is not None and len(frames) >= max_frames:
+                break
             _, _, terminated, truncated, _ = env.step(action)
-            frames.append(env.render())
+            if t % stride == 0 or terminated or truncated:
+                frames.append(env.render())
             if terminated or truncated:
                 break
-        if fps is None:
-            fps = float(env.metadata.get("render_fps") or 20)
+        fps = float(env.metadata.get("render_fps") or 25) / stride
     finally:
         env.close()
     return write_video(path, frames, fps=fps)
