@@ -282,7 +282,7 @@ class CoffeeEnv(gym.Env, EzPickle):
     def render(self) -> NDArray[np.uint8] | None:
         """An RGB frame (height, width, 3) for ``"rgb_array"``; moves the GUI camera for
         ``"human"``."""
-        target, distance, yaw, pitch = (0.38, 0.0, 0.12), 1.35, 65.0, -28.0
+        target, distance, yaw, pitch = (0.42, 0.05, 0.2), 1.3, 50.0, -22.0
         if self.render_mode == "rgb_array":
             return self.sim.render(self.width, self.height, target, distance, yaw, pitch)
         if self.render_mode == "human":

@@ -7,14 +7,20 @@ Geometry of the assets (``gym_coffee/assets/*.urdf``) is mirrored by the constan
 
 Layout regions (drawn uniformly from the env's ``np_random`` at every reset):
 
-==================  =================================================================
-cup base centre     x in ``CUP_REGION_X``, y in ``CUP_REGION_Y`` (right of the robot)
-machine footprint   x in ``MACHINE_REGION_X``, y in ``MACHINE_REGION_Y`` (left of it),
-                    yaw in ``[-MACHINE_YAW_RANGE, MACHINE_YAW_RANGE]`` (0: front faces the robot)
-==================  =================================================================
+==================  ==============================================================================
+cup base centre     x in ``CUP_REGION_X``, y in ``CUP_REGION_Y`` (in front of the robot, to its
+right)
+machine footprint   x in ``MACHINE_REGION_X``, y in ``MACHINE_REGION_Y`` (to the robot's left),
+                    yaw ``MACHINE_YAW_NOMINAL`` (90 degrees: the machine's front faces -y, towards
+                    the cup's side) plus uniform noise in ``[-MACHINE_YAW_RANGE,
+                    MACHINE_YAW_RANGE]``
+==================  ==============================================================================
 
-Cup and machine are redrawn until the cup is at least ``MIN_CUP_MACHINE_DISTANCE`` from the
-machine's footprint centre, so the cup never starts under or next to the machine.
+The cup is therefore carried sideways (along +y) into the machine, the gripper horizontal and
+pointing along the machine's axis, which suits the Panda's wrist. Cup and machine are redrawn until
+the cup is at least ``MIN_CUP_MACHINE_DISTANCE`` from the machine's footprint centre, so the cup
+never
+starts under or next to the machine.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ __all__ = [
     "CUP_REGION_Y",
     "MACHINE_REGION_X",
     "MACHINE_REGION_Y",
+    "MACHINE_YAW_NOMINAL",
     "MACHINE_YAW_RANGE",
     "PLACE_TOLERANCE",
     "CoffeeScene",
@@ -66,10 +73,11 @@ BUTTON_SPRING_FORCE = 3.0
 #: Horizontal distance (m) within which the cup's base centre counts as under the spout.
 PLACE_TOLERANCE = 0.025
 # --- layout regions ----------------------------------------------------------------------------
-CUP_REGION_X = (0.42, 0.62)
-CUP_REGION_Y = (-0.28, -0.06)
-MACHINE_REGION_X = (0.56, 0.66)
-MACHINE_REGION_Y = (0.14, 0.28)
+CUP_REGION_X = (0.40, 0.56)
+CUP_REGION_Y = (-0.26, -0.06)
+MACHINE_REGION_X = (0.45, 0.60)
+MACHINE_REGION_Y = (0.30, 0.38)
+MACHINE_YAW_NOMINAL = np.pi / 2
 MACHINE_YAW_RANGE = np.deg2rad(15.0)
 MIN_CUP_MACHINE_DISTANCE = 0.28
 # --- failure ----------------------------------------------------------------------------------
@@ -102,7 +110,7 @@ class Layout:
             machine = np.array(
                 [rng.uniform(*MACHINE_REGION_X), rng.uniform(*MACHINE_REGION_Y), TABLE_TOP_Z]
             )
-            yaw = float(rng.uniform(-MACHINE_YAW_RANGE, MACHINE_YAW_RANGE))
+            yaw = MACHINE_YAW_NOMINAL + float(rng.uniform(-MACHINE_YAW_RANGE, MACHINE_YAW_RANGE))
             if np.linalg.norm(cup[:2] - machine[:2]) >= MIN_CUP_MACHINE_DISTANCE:
                 return cls(cup, machine, yaw)
 
@@ -112,7 +120,7 @@ class CoffeeScene:
 
     def __init__(self, sim: Simulation) -> None:
         self.sim = sim
-        self.layout = Layout(np.array([0.5, -0.15, 0.0]), np.array([0.6, 0.2, 0.0]), 0.0)
+        self.layout = Layout(np.array([0.5, -0.15, 0.0]), np.array([0.52, 0.34, 0.0]), np.pi / 2)
 
     BODIES = ("plane", "table", "machine", "cup")
 
