@@ -145,6 +145,7 @@ class ScriptedTeacher:
         self.kinematics: PandaKinematics = env.unwrapped.kinematics
         self.segments: list[Segment] = []
         self._last_time = np.inf
+        self._plan_obs = np.zeros(0)
         self._jitter: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None
         self._jitter = None
 
@@ -167,7 +168,8 @@ class ScriptedTeacher:
         """The action (8,) for observation ``obs`` (OBS_DIM,)."""
         obs = np.asarray(obs, dtype=np.float64)
         t = float(obs_part(obs, "time")[0])
-        if not self.segments or (t < self._last_time - 1e-9 and t < 1e-9):
+        new_episode = t < 1e-9 and (t < self._last_time or not np.array_equal(obs, self._plan_obs))
+        if not self.segments or new_episode:
             self.plan(obs)
         self._last_time = t
         q = obs_part(obs, "joint_pos")
@@ -195,6 +197,7 @@ class ScriptedTeacher:
     def plan(self, obs: NDArray[np.float64]) -> None:
         """Plan the episode's waypoints from the task points and the current observation."""
         rng, var = self.rng, self.variation
+        self._plan_obs = obs.copy()
         points = self.env.unwrapped.task_points()
         cup = np.asarray(points["cup_pos"], dtype=np.float64)
         place = np.asarray(points["place_pos"], dtype=np.float64)

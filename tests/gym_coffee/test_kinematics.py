@@ -1,0 +1,119 @@
+"""PandaKinematics (pure numpy) against PyBullet, and the action scaling of the robot."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from gym_coffee.kinematics import PandaKinematics
+from gym_coffee.robot import (
+    EE_LINK,
+    GRIPPER_MAX_OPENING,
+    MAX_JOINT_STEP,
+    Panda,
+    action_from_targets,
+)
+from gym_coffee.simulation import Simulation
+
+
+@pytest.fixture(scope="module")
+def panda():
+    sim = Simulation()
+    robot = Panda(sim)
+    robot.load()
+    yield robot
+    sim.close()
+
+
+def test_forward_kinematics_matches_pybullet(panda):
+    rng = np.random.default_rng(0)
+    kin = PandaKinematics()
+    for _ in range(25):
+        q = rng.uniform(kin.joint_lower, kin.joint_upper)
+        panda.reset(q)
+        pos, quat = panda.sim.get_link_pose(panda.name, EE_LINK)
+        rot = panda.sim.get_matrix_from_quaternion(quat)
+        pos_np, rot_np = kin.forward_pose(q)
+        np.testing.assert_allclose(kin.forward_kinematics(q), pos, atol=1e-6)
+        np.testing.assert_allclose(pos_np, pos, atol=1e-6)
+        np.testing.assert_allclose(rot_np, rot, atol=1e-6)
+
+
+def test_jacobian_matches_pybullet_and_finite_differences(panda):
+    rng = np.random.default_rng(1)
+    kin = PandaKinematics()
+    p = panda.sim.p
+    for _ in range(10):
+        q = rng.uniform(kin.joint_lower, kin.joint_upper)
+        lin, ang = p.calculateJacobian(
+            panda.sim.bodies[panda.name],
+            EE_LINK,
+            [0.0, 0.0, 0.0],
+            [*q, 0.02, 0.02],
+            [0.0] * 9,
+            [0.0] * 9,
+        )
+        np.testing.assert_allclose(kin.position_jacobian(q), np.array(lin)[:, :7], atol=1e-9)
+        np.testing.assert_allclose(kin.jacobian(q)[3:], np.array(ang)[:, :7], atol=1e-9)
+        eps = 1e-6
+        fd = np.column_stack(
+            [
+                (kin.forward_kinematics(q + eps * e) - kin.forward_kinematics(q - eps * e))
+                / (2 * eps)
+                for e in np.eye(7)
+            ]
+        )
+        np.testing.assert_allclose(kin.position_jacobian(q), fd, atol=1e-7)
+
+
+def test_robot_model_protocol_and_cache():
+    kin = PandaKinematics()
+    assert kin.n_joints == 7
+    assert kin.joint_lower.shape == kin.joint_upper.shape == (7,)
+    assert np.all(kin.joint_lower < kin.joint_upper)
+    q = np.zeros(7)
+    a = kin.forward_kinematics(q)
+    a[:] = 99.0  # returned arrays are copies
+    np.testing.assert_array_equal(
+        kin.forward_kinematics(q), PandaKinematics().forward_kinematics(q)
+    )
+    with pytest.raises(ValueError, match="shape"):
+        kin.forward_kinematics(np.zeros(6))
+
+
+def test_base_position_shifts_the_grasp_point():
+    q = np.array([0.0, -0.6, 0.0, -2.4, 0.0, 1.85, 0.785])
+    shifted = PandaKinematics(base_position=(0.1, -0.2, 0.3))
+    np.testing.assert_allclose(
+        shifted.forward_kinematics(q),
+        PandaKinematics().forward_kinematics(q) + np.array([0.1, -0.2, 0.3]),
+    )
+
+
+def test_kinematics_is_fast():
+    kin = PandaKinematics()
+    q = np.array([0.0, -0.6, 0.0, -2.4, 0.0, 1.85, 0.785])
+    n = 2000
+    start = time.perf_counter()
+    for i in range(n):
+        q[0] = 1e-6 * i
+        kin.forward_kinematics(q)
+        kin.position_jacobian(q)
+    per_pair = (time.perf_counter() - start) / n
+    assert per_pair < 200e-6  # ~25 us on a 2-core CI machine; generous bound against noise
+
+
+def test_action_from_targets_inverts_the_scaling(panda):
+    rng = np.random.default_rng(2)
+    q = np.array([0.0, -0.6, 0.0, -2.4, 0.0, 1.85, 0.785])
+    delta = rng.uniform(-1, 1, 7) * MAX_JOINT_STEP
+    action = action_from_targets(q, q + delta, 0.03)
+    assert action.shape == (8,) and action.dtype == np.float32
+    np.testing.assert_allclose(action[:7] * MAX_JOINT_STEP, delta, atol=1e-7)
+    np.testing.assert_allclose((action[7] + 1) / 2 * GRIPPER_MAX_OPENING, 0.03, atol=1e-7)
+    assert np.all(np.abs(action_from_targets(q, q + 1.0, 1.0)) <= 1.0)
+    batch = action_from_targets(np.tile(q, (4, 1)), np.tile(q + delta, (4, 1)), np.full(4, 0.03))
+    assert batch.shape == (4, 8)
+    np.testing.assert_allclose(batch, np.tile(action, (4, 1)))
