@@ -1,6 +1,6 @@
 """Demonstration files: lossless round trip, validation messages, safe writing.
 
-Everything here runs on synthetic arrays (no simulator), except the last test, which records
+Everything here runs on synthetic arrays (no simulator), except one test, which records
 one real teacher episode.
 """
 
@@ -295,3 +295,78 @@ def test_constructor_validates_shapes():
     other.observations = np.zeros((5, OBS_DIM + 2), np.float32)
     with pytest.raises(DemonstrationFormatError, match="obs_dim"):
         DemonstrationSet([demo, other])
+
+
+# -- collect_demonstrations -----------------------------------------------------------------------
+
+
+class _FakeEnv:
+    spec = None
+
+    @property
+    def unwrapped(self):
+        return self
+
+
+def test_failed_episodes_are_skipped_and_recorded(monkeypatch):
+    """A failed teacher episode is retried with the next seed; the skipped seeds are recorded."""
+    import gym_coffee.demonstrations as demonstrations
+
+    rng = np.random.default_rng(0)
+
+    def fake_episode(env, seed, *args):
+        demo = make_demo(rng, 4, seed=seed)
+        demo.success = seed not in (11, 13)
+        return demo
+
+    monkeypatch.setattr(demonstrations, "_record_episode", fake_episode)
+    demos = demonstrations.collect_demonstrations(_FakeEnv(), n=3, seed=10)
+    assert demos.seeds == [10, 12, 14]
+    assert demos.metadata["seeds"] == [10, 12, 14]
+    assert demos.metadata["failed_seeds"] == [11, 13]
+    assert all(d.success for d in demos)
+
+    kept = demonstrations.collect_demonstrations(_FakeEnv(), n=3, seed=10, keep_failed=True)
+    assert kept.seeds == [10, 11, 12] and [d.success for d in kept] == [True, False, True]
+
+    with pytest.raises(RuntimeError, match="succeeded on only 2 of 4 layouts"):
+        demonstrations.collect_demonstrations(_FakeEnv(), n=3, seed=11, max_attempts=4)
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="positive integer"):
+            demonstrations.collect_demonstrations(_FakeEnv(), n=bad, seed=0)
+
+
+def test_collect_one_real_demonstration_from_a_raw_env(tmp_path):
+    """A raw CoffeeEnv (no gym.make) works; recorded arrays agree with the observations."""
+    from gym_coffee.env import CONTROL_DT, CoffeeEnv, obs_part
+
+    env = CoffeeEnv()
+    try:
+        demos = gym_coffee_collect(env, n=1, seed=0)
+    finally:
+        env.close()
+    demo = demos[0]
+    meta = demos.metadata
+    assert meta["env_id"] == "gym_coffee/CoffeeTask-v0"  # found through the registry
+    assert meta["seeds"] == [demo.seed] and demo.success
+    assert meta["control_dt"] == pytest.approx(CONTROL_DT)
+    obs = demo.observations
+    np.testing.assert_allclose(demo.time, np.arange(demo.n_steps) * CONTROL_DT, atol=1e-5)
+    np.testing.assert_array_equal(demo.joint_pos, obs_part(obs, "joint_pos"))
+    np.testing.assert_array_equal(demo.object_pos["cup"], obs_part(obs, "cup_pos"))
+    yaw = obs_part(obs, "machine_yaw")[:, 0].astype(np.float64)
+    np.testing.assert_allclose(demo.object_quat["machine"][:, 2], np.sin(yaw / 2))
+    np.testing.assert_allclose(np.linalg.norm(demo.object_quat["cup"], axis=1), 1.0, atol=1e-5)
+    assert not demo.stages[0].any() and demo.stages[-1].all()
+    # Stage flags switch on in the task's order.
+    first = [int(np.argmax(demo.stages[:, i])) for i in range(3)]
+    assert first[0] < first[1] < first[2]
+    assert np.abs(demo.actions).max() <= 1.0
+    path = demos.save(tmp_path / "real.npz")
+    assert DemonstrationSet.load(path) == demos
+
+
+def gym_coffee_collect(env, **kwargs):
+    from gym_coffee import collect_demonstrations
+
+    return collect_demonstrations(env, **kwargs)

@@ -1,0 +1,96 @@
+"""``gym-coffee record``: records real teacher demonstrations, refuses to overwrite, has help."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from gym_coffee import cli
+from gym_coffee.cli import build_parser, main
+from gym_coffee.demonstrations import DemonstrationSet
+
+
+def test_help(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--help"])
+    assert info.value.code == 0
+    assert "record" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as info:
+        main(["record", "--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    for option in ("--n", "--out", "--seed", "--force", "--video"):
+        assert option in out
+
+
+def test_console_script_help():
+    exe = shutil.which("gym-coffee")
+    cmd = [exe, "--help"] if exe else [sys.executable, "-m", "gym_coffee.cli", "--help"]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "record" in result.stdout
+
+
+@pytest.mark.parametrize("bad", ["0", "-3", "two"])
+def test_bad_n_is_a_usage_error(bad, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["record", "--n", bad, "--out", str(tmp_path / "d.npz")])
+    assert info.value.code == 2
+    assert "--n" in capsys.readouterr().err
+    assert not (tmp_path / "d.npz").exists()
+
+
+def test_bad_video_suffix_fails_before_recording(tmp_path, capsys):
+    code = main(["record", "--n", "1", "--out", str(tmp_path / "d.npz"), "--video", "x.avi"])
+    assert code == 2
+    assert ".mp4" in capsys.readouterr().err
+    assert not (tmp_path / "d.npz").exists()
+
+
+def test_record_works_without_the_learning_side(monkeypatch, capsys):
+    """If lgp_policy.cli cannot be imported, `record` is still there."""
+    monkeypatch.setitem(sys.modules, "lgp_policy.cli", None)  # import raises ImportError
+    parser = build_parser()
+    args = parser.parse_args(["record", "--out", "x.npz"])
+    assert args.command == "record"
+    with pytest.raises(SystemExit) as info:
+        main(["fit", "demos.npz"])
+    assert info.value.code == 2
+    assert "lgp_policy.cli" in capsys.readouterr().err
+
+
+def test_record_refuses_to_overwrite(tmp_path, capsys):
+    out = tmp_path / "demos.npz"
+    out.write_bytes(b"keep me")
+    assert main(["record", "--n", "1", "--out", str(out), "--no-progress"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert out.read_bytes() == b"keep me"
+
+
+def test_record_one_demo_with_video_then_force(tmp_path, capsys, monkeypatch):
+    # The headless renderer takes ~0.15 s a frame: a short video keeps this test fast; the full
+    # video path runs in benchmarks/teacher.py --video.
+    monkeypatch.setattr(cli, "VIDEO_MAX_FRAMES", 6)
+    out, video = tmp_path / "demos.npz", tmp_path / "demo.gif"
+    args = ["record", "--n", "1", "--seed", "3", "--out", str(out), "--no-progress"]
+    assert main([*args, "--video", str(video)]) == 0
+    printed = capsys.readouterr().out
+    assert "saved 1 demonstrations" in printed
+    demos = DemonstrationSet.load(out)
+    assert len(demos) == 1
+    demo = demos[0]
+    assert demo.success and demo.stages[-1].all()
+    assert demo.seed >= 3 and demos.metadata["seeds"] == [demo.seed]
+    assert demos.metadata["env_id"] == "gym_coffee/CoffeeTask-v0"
+    assert demo.time[0] == 0.0 and np.all(np.diff(demo.time) > 0)
+    frames = iio.imread(video, index=None)
+    assert frames.shape[0] == 6 and frames.shape[-1] == 3 and frames.std() > 5
+
+    # --force replaces the file; the same seed gives the same demonstration (deterministic).
+    assert main([*args, "--force"]) == 0
+    assert DemonstrationSet.load(out) == demos
