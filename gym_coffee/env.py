@@ -98,8 +98,7 @@ def object_frames(obs: NDArray[Any]) -> dict[str, tuple[NDArray[np.float64], NDA
     """Object frames (position (3,), rotation (3, 3)) rebuilt from one observation (OBS_DIM,).
 
     ``cup``: at the cup's initial base centre, identity rotation (the cup is rotationally
-    symmetric);
-    ``machine``: at the machine's footprint centre, rotated by ``Rz(machine_yaw)``.
+    symmetric); ``machine``: at the machine's footprint centre, rotated by ``Rz(machine_yaw)``.
     """
     obs = np.asarray(obs, dtype=np.float64)
     yaw = float(obs_part(obs, "machine_yaw")[0])
@@ -110,74 +109,58 @@ def object_frames(obs: NDArray[Any]) -> dict[str, tuple[NDArray[np.float64], NDA
 
 
 class CoffeeEnv(gym.Env, EzPickle):
-    """A Franka Panda makes coffee: grasp a cup, put it under the coffee machine's spout, press the
-    button.
+    """A Franka Panda makes coffee: grasp a cup, put it under the machine's spout, press the button.
 
     ## Description
     The coffee task of Schneider & Ertel, *Robot Learning by Demonstration with Local Gaussian
-    Process
-    Regression* (IROS 2010), Sec. IV and Fig. 3, in PyBullet with a 7-DOF Franka Panda instead of
-    the
-    paper's 5-DOF Katana. A cup (6 cm x 8 cm, 0.15 kg) stands somewhere on the table to the robot's
-    right;
-    a coffee machine stands to its left, its front roughly facing the robot. The robot must grasp
-    the cup
-    (from the side: the machine's head overhangs the drip tray, so a top grasp cannot bring the cup
-    under
-    the spout), place it upright on the drip tray under the spout, let go, move away without
-    knocking it
-    over and press the small spring-loaded button on the machine's front panel.
+    Process Regression* (IROS 2010), Sec. IV and Fig. 3, in PyBullet with a 7-DOF Franka Panda
+    instead of the paper's 5-DOF Katana. A cup (6 cm x 8 cm, 0.15 kg) stands somewhere on the table
+    to the robot's right; a coffee machine stands to its left, its front turned towards the cup's
+    side. The robot must grasp the cup (from the side: the machine's head overhangs the drip tray,
+    so a top grasp cannot bring the cup under the spout), place it upright on the drip tray under
+    the spout, let go, move away without knocking it over and press the small spring-loaded button
+    on the machine's front panel.
 
     ## Action Space
     ``Box(-1, 1, (8,), float32)``. ``a[:7]``: joint-position deltas, joint targets = measured
-    positions +
-    ``a[:7] * MAX_JOINT_STEP`` (0.05 rad per step), clipped to the joint limits; ``a[7]``: absolute
-    gripper opening ``(a[7] + 1) / 2 * 0.08`` m. ``gym_coffee.robot.action_from_targets`` inverts
-    this.
+    positions + ``a[:7] * MAX_JOINT_STEP`` (0.05 rad per step), clipped to the joint limits;
+    ``a[7]``: absolute gripper opening ``(a[7] + 1) / 2 * 0.08`` m.
+    ``gym_coffee.robot.action_from_targets`` inverts this.
 
     ## Observation Space
     Flat ``Box(OBS_LOW, OBS_HIGH, (OBS_DIM,), float32)`` (wide finite bounds); ``OBS_SLICES`` names
-    the parts and
-    :func:`obs_part` extracts them: ``time`` (s since reset), ``joint_pos`` (7, rad), ``joint_vel``
-    (7, rad/s), ``gripper`` (finger opening, m), ``ee_pos`` (grasp point, world, m), ``cup_pos``
-    (cup base
-    centre), ``cup_quat`` (xyzw), ``cup_init_pos``, ``machine_pos`` (footprint centre),
-    ``machine_yaw``
-    (rad), ``button_travel`` (m). :func:`object_frames` rebuilds the cup and machine frames.
+    the parts and :func:`obs_part` extracts them: ``time`` (s since reset), ``joint_pos`` (7, rad),
+    ``joint_vel`` (7, rad/s), ``gripper`` (finger opening, m), ``ee_pos`` (grasp point, world, m),
+    ``cup_pos`` (cup base centre), ``cup_quat`` (xyzw), ``cup_init_pos``, ``machine_pos`` (footprint
+    centre), ``machine_yaw`` (rad), ``button_travel`` (m). :func:`object_frames` rebuilds the cup
+    and machine frames.
 
     ## Rewards
     ``reward_type="dense"``: the sum of named terms, each in ``info`` as ``reward_<name>``:
     ``reach`` (minus the grasp point's distance to the cup's middle, until the cup is grasped),
     ``carry`` (minus the cup's distance to the place under the spout, after grasping, until placed),
-    ``press`` (once placed: minus the grasp point's distance to the button, plus the button's
-    travel as
-    a fraction of the press travel), ``stage`` (1 per stage reached: grasped, placed, success),
+    ``press`` (once placed: minus the grasp point's distance to the button, plus the button's travel
+    as a fraction of the press travel), ``stage`` (1 per stage reached: grasped, placed, success),
     ``success`` (+10 on success) and ``failure`` (-10 if the cup falls off the table or tips over).
     ``reward_type="sparse"``: ``success`` only, 1 on success, else 0 (the other terms are 0).
 
     ## Starting State
     The Panda in a ready posture (gripper down, open) with uniform noise of +-0.05 rad per joint;
-    the cup
-    upright in ``scene.CUP_REGION_*``; the machine in ``scene.MACHINE_REGION_*`` with a yaw of at
-    most
-    +-15 degrees; all drawn from ``self.np_random``, so ``reset(seed=s)`` fixes the layout.
+    the cup upright in ``scene.CUP_REGION_*``; the machine in ``scene.MACHINE_REGION_*``, its yaw 90
+    degrees (front facing -y) +-15 degrees; all drawn from ``self.np_random``, so ``reset(seed=s)``
+    fixes the layout.
 
     ## Episode End
     Terminates on success (cup grasped, placed under the spout and the button pressed while it
-    stands
-    there) or on an unrecoverable failure (cup off the table or tipped over). Truncated by the time
-    limit
-    (``max_episode_steps=400`` at registration, 16 s at 25 Hz).
+    stands there) or on an unrecoverable failure (cup off the table or tipped over). Truncated by
+    the time limit (``max_episode_steps=400`` at registration, 16 s at 25 Hz).
 
     ## Info
     ``is_success``, ``cup_grasped`` (latched: the cup was lifted off the table between both
-    fingers),
-    ``cup_placed`` (now: upright, not touched by the robot, base within ``place_tolerance`` of the
-    place
-    under the spout, resting on the tray), ``button_pressed`` (latched: travel passed the
-    threshold),
-    ``stage`` (0: none, 1: grasped, 2: grasped and placed, 3: success), and the ``reward_<name>``
-    terms.
+    fingers), ``cup_placed`` (now: upright, not touched by the robot, base within
+    ``place_tolerance`` of the place under the spout, resting on the tray), ``button_pressed``
+    (latched: travel passed the threshold), ``stage`` (0: none, 1: grasped, 2: grasped and placed,
+    3: success), and the ``reward_<name>`` terms.
 
     ## Arguments
     ==================  ==========  ===========================================================
@@ -282,7 +265,7 @@ class CoffeeEnv(gym.Env, EzPickle):
     def render(self) -> NDArray[np.uint8] | None:
         """An RGB frame (height, width, 3) for ``"rgb_array"``; moves the GUI camera for
         ``"human"``."""
-        target, distance, yaw, pitch = (0.42, 0.05, 0.2), 1.3, 50.0, -22.0
+        target, distance, yaw, pitch = (0.4, 0.06, 0.2), 1.25, 45.0, -25.0
         if self.render_mode == "rgb_array":
             return self.sim.render(self.width, self.height, target, distance, yaw, pitch)
         if self.render_mode == "human":

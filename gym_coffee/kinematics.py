@@ -1,18 +1,15 @@
 """Pure-numpy kinematics of the Franka Panda arm (no PyBullet).
 
 The chain is the one of ``franka_panda/panda.urdf`` in ``pybullet_data``: seven revolute joints,
-then the
-fixed flange (``panda_joint8``, 0.107 m), the hand (rotated by -pi/4 about z) and the grasp target
-between the
-fingertips (0.105 m further along the hand's z axis, link ``panda_grasptarget``). The end-effector
-point of
-gym-coffee is that grasp target, the same point as ``ee_pos`` in the observations.
+then the fixed flange (``panda_joint8``, 0.107 m), the hand (rotated by -pi/4 about z) and the grasp
+target between the fingertips (0.105 m further along the hand's z axis, link ``panda_grasptarget``).
+The end-effector point of gym-coffee is that grasp target, the same point as ``ee_pos`` in the
+observations.
 
 :class:`PandaKinematics` satisfies the ``RobotModel`` protocol of ``docs/CONTRACTS.md``:
 ``n_joints``, ``forward_kinematics(q) -> (3,)``, ``position_jacobian(q) -> (3, 7)``,
-``joint_lower``,
-``joint_upper``. The Jacobian is the exact geometric one (``z_i x (p_ee - p_i)``), not a finite
-difference.
+``joint_lower``, ``joint_upper``. The Jacobian is the exact geometric one (``z_i x (p_ee - p_i)``),
+not a finite difference.
 """
 
 from __future__ import annotations

@@ -1,10 +1,9 @@
 """The Franka Panda: 7 arm joints under position control and a parallel two-finger gripper.
 
-Action (``docs/CONTRACTS.md``): ``a[:7]`` are joint-position deltas, joint targets =
-measured joint positions + ``a[:7] * MAX_JOINT_STEP`` (rad per control step), clipped to the joint
-limits; ``a[7]`` is the absolute gripper opening ``(a[7] + 1) / 2 * GRIPPER_MAX_OPENING`` (m,
-distance
-between the fingers). :func:`action_from_targets` is the inverse.
+Action (``docs/CONTRACTS.md``): ``a[:7]`` are joint-position deltas, joint targets = measured joint
+positions + ``a[:7] * MAX_JOINT_STEP`` (rad per control step), clipped to the joint limits; ``a[7]``
+is the absolute gripper opening ``(a[7] + 1) / 2 * GRIPPER_MAX_OPENING`` (m, distance between the
+fingers). :func:`action_from_targets` is the inverse.
 """
 
 from __future__ import annotations
@@ -52,8 +51,7 @@ def action_from_targets(
     opening (m).
 
     Clipped to [-1, 1]; the inverse of the scaling in :meth:`Panda.set_action`. Works on (7,) or
-    (n, 7)
-    with a scalar or (n,) ``gripper_opening``.
+    (n, 7) with a scalar or (n,) ``gripper_opening``.
     """
     q = np.asarray(q, dtype=np.float64)
     q_target = np.asarray(q_target, dtype=np.float64)

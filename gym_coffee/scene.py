@@ -1,26 +1,21 @@
-"""The coffee-task scene: table, cup, coffee machine with a spring-loaded button, layout sampling,
-stages.
+"""The coffee-task scene: table, cup, coffee machine with a spring-loaded button, layout sampling.
 
-World frame: the robot base (``panda_link0``) stands at the origin on the table top (z = 0), facing
-+x.
-Geometry of the assets (``gym_coffee/assets/*.urdf``) is mirrored by the constants below.
+World frame: the robot base (``panda_link0``) stands at the origin on the table top (z = 0) and
+faces +x. Geometry of the assets (``gym_coffee/assets/*.urdf``) is mirrored by the constants below.
 
 Layout regions (drawn uniformly from the env's ``np_random`` at every reset):
 
-==================  ==============================================================================
-cup base centre     x in ``CUP_REGION_X``, y in ``CUP_REGION_Y`` (in front of the robot, to its
-right)
+==================  ===========================================================================
+cup base centre     x in ``CUP_REGION_X``, y in ``CUP_REGION_Y`` (in front, to the robot's right)
 machine footprint   x in ``MACHINE_REGION_X``, y in ``MACHINE_REGION_Y`` (to the robot's left),
-                    yaw ``MACHINE_YAW_NOMINAL`` (90 degrees: the machine's front faces -y, towards
-                    the cup's side) plus uniform noise in ``[-MACHINE_YAW_RANGE,
-                    MACHINE_YAW_RANGE]``
-==================  ==============================================================================
+                    yaw ``MACHINE_YAW_NOMINAL`` (90 degrees: the machine's front faces -y,
+                    towards the cup's side) plus uniform noise within ``MACHINE_YAW_RANGE``
+==================  ===========================================================================
 
 The cup is therefore carried sideways (along +y) into the machine, the gripper horizontal and
 pointing along the machine's axis, which suits the Panda's wrist. Cup and machine are redrawn until
 the cup is at least ``MIN_CUP_MACHINE_DISTANCE`` from the machine's footprint centre, so the cup
-never
-starts under or next to the machine.
+never starts under or next to the machine.
 """
 
 from __future__ import annotations
@@ -128,8 +123,7 @@ class CoffeeScene:
         """Load (or, when loaded, remove and load afresh) the scene's bodies.
 
         Loading afresh at every reset drops the contact caches of the previous episode, so an
-        episode
-        does not depend on what happened before the reset (Gymnasium's determinism checks).
+        episode does not depend on what happened before the reset (Gymnasium's determinism checks).
         """
         sim = self.sim
         for name in self.BODIES:

@@ -1,8 +1,7 @@
 """The PyBullet wrapper: the only module of gym-coffee that imports ``pybullet``.
 
 Each :class:`Simulation` owns one physics server (a ``BulletClient``), so two environments in one
-process
-never share state. Bodies are addressed by name.
+process never share state. Bodies are addressed by name.
 """
 
 from __future__ import annotations

@@ -1,18 +1,13 @@
 """A scripted, human-like teacher for the coffee task.
 
 The teacher plans Cartesian waypoints for the grasp point and the hand orientation from the task
-points
-of the episode (``CoffeeEnv.task_points()``), times them with minimum-jerk profiles and tracks them
-with
-damped-least-squares inverse kinematics on :class:`~gym_coffee.kinematics.PandaKinematics` (6-D
-pose,
-with a null-space pull to a comfortable posture). The motion follows the paper's Fig. 3: approach
-the
-cup from the side with the gripper horizontal, grasp, lift, carry it in front of the machine, slide
-it
-onto the drip tray under the spout, put it down, let go, pull back without touching the cup, close
-the
-gripper, move up in front of the button and press it along its axis.
+points of the episode (``CoffeeEnv.task_points()``), times them with minimum-jerk profiles and
+tracks them with damped-least-squares inverse kinematics on
+:class:`~gym_coffee.kinematics.PandaKinematics` (6-D pose, with a null-space pull to a comfortable
+posture). The motion follows the paper's Fig. 3: approach the cup from the side with the gripper
+horizontal, grasp, lift, carry it in front of the machine, slide it onto the drip tray under the
+spout, put it down, let go, pull back without touching the cup, close the gripper, move up in front
+of the button and press it along its axis.
 
 Human-like variation (from the teacher's own random generator): overall speed and per-segment
 durations, via points (arcs of different heights), approach angle, grasp height and depth, press
