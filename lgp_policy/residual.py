@@ -65,11 +65,13 @@ __all__ = [
     "RL_EXTRA_HINT",
     "ActuationNoiseWrapper",
     "FinetuneResult",
+    "MachinePoseErrorWrapper",
     "ObsNormalizer",
     "PhaseGate",
     "ResidualPolicy",
     "ResidualPolicyFormatError",
     "ResidualWrapper",
+    "TeacherBase",
     "evaluate_stages",
     "finetune",
     "gate_from_config",
@@ -194,6 +196,59 @@ def _as_batch(observation: Any) -> tuple[NDArray[Any], bool]:
             f"observation must have shape (obs_dim,) or (n_envs, obs_dim), got {obs.shape}"
         )
     return obs, False
+
+
+def _bind(policy: Any, env: gym.Env) -> Any:
+    """``policy.bind(env)`` for env-bound policies (scripted controllers), else ``policy``."""
+    bind = getattr(policy, "bind", None)
+    return bind(env) if callable(bind) else policy
+
+
+class TeacherBase:
+    """The scripted teacher (:class:`gym_coffee.teacher.ScriptedTeacher`) as a base policy.
+
+    A stand-in for the GP policy while that is not available, and a reference: the teacher plans
+    from the env's ``task_points()`` (privileged: the true button position), so it must be bound
+    to the env it acts in (:meth:`bind`, done by :class:`ResidualWrapper` and
+    :func:`evaluate_stages`). Deterministic per layout (``variation=0`` by default). Its phase is
+    the observation time over the planned duration.
+    """
+
+    def __init__(self, env: gym.Env | None = None, *, variation: float = 0.0, seed: int = 0):
+        self.variation = float(variation)
+        self.seed = int(seed)
+        self.env = env
+        self._teacher: Any = None
+        if env is not None:
+            from gym_coffee.teacher import ScriptedTeacher
+
+            self._teacher = ScriptedTeacher(env, rng=self.seed, variation=self.variation)
+
+    def bind(self, env: gym.Env) -> TeacherBase:
+        return TeacherBase(env, variation=self.variation, seed=self.seed)
+
+    def predict(
+        self,
+        observation: NDArray[Any],
+        state: Any = None,
+        episode_start: Any = None,
+        deterministic: bool = True,
+    ) -> tuple[NDArray[np.float32], Any]:
+        if self._teacher is None:
+            raise RuntimeError("TeacherBase is not bound to an env; call bind(env)")
+        obs = np.asarray(observation)
+        if obs.ndim == 2:
+            if obs.shape[0] != 1:
+                raise ValueError("a bound TeacherBase acts in one env: pass one observation")
+            return self._teacher.act(obs[0])[None, :], state
+        return self._teacher.act(obs), state
+
+    def phase(self, observation: NDArray[Any]) -> NDArray[np.float64]:
+        from gym_coffee.env import OBS_SLICES
+
+        obs = np.atleast_2d(np.asarray(observation, np.float64))
+        duration = max(float(self._teacher.duration), 1e-6) if self._teacher is not None else 1.0
+        return np.clip(obs[:, OBS_SLICES["time"].start] / duration, 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -351,6 +406,9 @@ class ResidualWrapper(gym.Wrapper):
 
     ``info`` gains ``env_steps``, ``residual_gate`` (the gate of the action just applied) and
     ``base_action``.
+
+    A base with a ``bind(env)`` method (a scripted controller that reads the env, such as
+    :class:`TeacherBase`) is bound to this wrapper's env first.
     """
 
     def __init__(
@@ -368,6 +426,7 @@ class ResidualWrapper(gym.Wrapper):
         super().__init__(env)
         if not hasattr(base, "predict"):
             raise TypeError(f"base must have a predict() method, got {type(base).__name__}")
+        base = _bind(base, env)
         obs_space, act_space = env.observation_space, env.action_space
         if not (isinstance(obs_space, spaces.Box) and len(obs_space.shape) == 1):
             raise TypeError(f"ResidualWrapper needs a flat Box observation space, got {obs_space}")
@@ -520,11 +579,15 @@ def press_reward(reward: float, info: Mapping[str, Any], previous_info: Mapping[
 class ActuationNoiseWrapper(gym.ActionWrapper):
     """Actuation error: ``a' = clip(a + bias + noise)`` on chosen action entries.
 
-    ``bias`` is a fixed offset (a miscalibrated joint: ``bias_std`` draws one per episode from the
-    env's seed stream, ``bias`` is constant); ``noise_std`` adds white noise every step. Randomness
-    comes from a generator seeded by ``reset(seed=...)``, so seeded episodes stay reproducible.
-    Used by ``benchmarks/residual_press.py`` as the "harder variant" when the base already presses
-    reliably on the plain env.
+    ``bias`` is a fixed offset (a miscalibrated joint; ``bias_std`` adds a per-episode random part
+    drawn at ``reset(seed=...)``); ``noise_std`` adds white noise every step. Randomness comes from
+    a generator seeded by ``reset(seed=...)``, so seeded episodes stay reproducible.
+
+    The error acts from the start, or only once ``start_on_info`` (an ``info`` flag, e.g.
+    ``"cup_placed"``) has been true at some step of the episode (latched), or once the
+    observation's time (``time_index``) reaches ``start_time``. This is an env-side variant: it may
+    read ``info``; the policy never sees when it starts. Used by ``benchmarks/residual_press.py``
+    as the "harder variant" when the base already presses reliably on the plain env.
     """
 
     def __init__(
@@ -537,8 +600,11 @@ class ActuationNoiseWrapper(gym.ActionWrapper):
         noise_std: float = 0.0,
         start_time: float | None = None,
         time_index: int | None = None,
+        start_on_info: str | None = None,
     ) -> None:
         super().__init__(env)
+        if start_time is not None and time_index is None:
+            raise ValueError("start_time needs time_index (the observation's time entry)")
         act_dim = env.action_space.shape[0]
         self.dims = np.arange(act_dim) if dims is None else np.asarray(dims, dtype=np.intp)
         self.bias = np.broadcast_to(np.asarray(bias, np.float32), self.dims.shape).copy()
@@ -547,8 +613,10 @@ class ActuationNoiseWrapper(gym.ActionWrapper):
         self.start_time = start_time
         self.time_index = time_index
         self._rng = np.random.default_rng()
+        self.start_on_info = start_on_info
         self._episode_bias = self.bias.copy()
         self._last_obs: NDArray[Any] | None = None
+        self._active = False
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         if seed is not None:
@@ -560,23 +628,81 @@ class ActuationNoiseWrapper(gym.ActionWrapper):
         )
         obs, info = self.env.reset(seed=seed, options=options)
         self._last_obs = obs
+        self._active = False
+        self._update_active(obs, info)
         return obs, info
+
+    def _update_active(self, obs: NDArray[Any], info: Mapping[str, Any]) -> None:
+        active = True
+        if self.start_on_info is not None:
+            active = bool(info.get(self.start_on_info, False))
+        if self.start_time is not None:
+            active = active and float(np.asarray(obs)[self.time_index]) >= self.start_time
+        self._active = self._active or active
 
     def step(self, action):
         obs, reward, terminated, truncated, info = super().step(action)
         self._last_obs = obs
+        self._update_active(obs, info)
+        info = dict(info)
+        info["actuation_error_active"] = self._active
         return obs, reward, terminated, truncated, info
 
     def action(self, action: NDArray[Any]) -> NDArray[np.float32]:
         a = np.array(action, dtype=np.float32, copy=True)
-        if self.start_time is not None and self._last_obs is not None:
-            if float(np.asarray(self._last_obs)[self.time_index]) < self.start_time:
-                return a
+        if not self._active:
+            return a
         a[self.dims] += self._episode_bias
         if self.noise_std > 0:
             a[self.dims] += self._rng.normal(0.0, self.noise_std, self.dims.shape)
         space = self.env.action_space
         return np.clip(a, space.low, space.high).astype(np.float32)
+
+
+class MachinePoseErrorWrapper(gym.ObservationWrapper):
+    """Perception error on the coffee machine's pose: the *observed* ``machine_pos`` is shifted by
+    ``delta`` metres towards the machine's front (along ``-button_axis``, the machine frame's -x),
+    with ``delta`` drawn per episode from ``U(low, high)`` at ``reset(seed=...)``.
+
+    The physics are untouched; a policy that places and presses relative to the observed machine
+    frame (the GP policy) aims everything ``delta`` short of the true position. Placing tolerates
+    that (the place tolerance is 25 mm); the press does not (the button must travel 5 mm): the
+    robot "stopped a few millimeters in front of it" (Sec. IV). ``info["machine_pose_error"]``
+    is ``delta`` (for analysis; policies do not see it).
+    """
+
+    def __init__(self, env: gym.Env, *, low: float = 0.002, high: float = 0.010) -> None:
+        super().__init__(env)
+        if not 0 <= low <= high:
+            raise ValueError(f"need 0 <= low <= high, got {low}, {high}")
+        from gym_coffee.env import OBS_SLICES
+
+        self.low, self.high = float(low), float(high)
+        self._pos = OBS_SLICES["machine_pos"]
+        self._yaw = OBS_SLICES["machine_yaw"].start
+        self._rng = np.random.default_rng()
+        self.delta = 0.0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if seed is not None:
+            self._rng = np.random.default_rng([int(seed), 0x5EE])
+        self.delta = float(self._rng.uniform(self.low, self.high))
+        obs, info = self.env.reset(seed=seed, options=options)
+        info = dict(info)
+        info["machine_pose_error"] = self.delta
+        return self.observation(obs), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        info = dict(info)
+        info["machine_pose_error"] = self.delta
+        return obs, reward, terminated, truncated, info
+
+    def observation(self, observation: NDArray[Any]) -> NDArray[np.float32]:
+        obs = np.array(observation, dtype=np.float32, copy=True)
+        yaw = float(obs[self._yaw])
+        obs[self._pos][:2] -= self.delta * np.array([np.cos(yaw), np.sin(yaw)], np.float32)
+        return obs
 
 
 # --------------------------------------------------------------------------------------------
@@ -951,6 +1077,15 @@ class ResidualPolicy:
         """The gate's phase (so a residual policy can itself be a base)."""
         return self.gate.phase(observation, self.base)
 
+    def bind(self, env: gym.Env) -> ResidualPolicy:
+        """This policy with an env-bound base (e.g. :class:`TeacherBase`) bound to ``env``."""
+        if not callable(getattr(self.base, "bind", None)):
+            return self
+        clone = object.__new__(ResidualPolicy)
+        clone.__dict__.update(self.__dict__)
+        clone.base = _bind(self.base, env)
+        return clone
+
     # -- file --------------------------------------------------------------------------------
     def save(
         self,
@@ -1266,6 +1401,7 @@ def evaluate_stages(
     """
     own = env is None
     env = env_fn() if own else env
+    policy = _bind(policy, env)
     hits = {k: 0 for k in STAGE_KEYS}
     placed_at_end = 0
     seen: set[str] = set()

@@ -19,7 +19,7 @@ from typing import Any
 __all__ = ["add_finetune_subcommand", "build_env_fn", "make_gate", "run_finetune"]
 
 ENV_ID = "gym_coffee/CoffeeTask-v0"
-VARIANTS = ("none", "press-bias")
+VARIANTS = ("none", "machine-offset")
 
 
 def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -64,8 +64,8 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
         type=float,
         default=None,
         metavar="PHASE",
-        help="phase at which the residual is fully on (default: from the policy's constraint "
-        "report if it has one, else 0.75)",
+        help="phase at which the residual is fully on (default: 0.05 after the phase at which "
+        "the demonstrations had placed the cup, from the policy's constraint report)",
     )
     p.add_argument(
         "--eval-episodes",
@@ -95,12 +95,18 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
         "--variant",
         choices=VARIANTS,
         default="none",
-        help="harder env variant for when the base already presses reliably: 'press-bias' adds "
-        "a fixed actuation offset to joints 2 and 4 after time --variant-after "
-        "(see lgp_policy.residual.ActuationNoiseWrapper; default: none)",
+        help="harder env variant for when the base already presses reliably: 'machine-offset' "
+        "shifts the observed machine position a few mm towards its front, so the base aims "
+        "short of the button (lgp_policy.residual.MachinePoseErrorWrapper; default: none)",
     )
-    p.add_argument("--variant-bias", type=float, default=0.15, help="offset, action units")
-    p.add_argument("--variant-after", type=float, default=None, help="seconds (default: gate)")
+    p.add_argument(
+        "--variant-range",
+        type=float,
+        nargs=2,
+        default=(0.002, 0.010),
+        metavar=("LOW", "HIGH"),
+        help="machine-offset: per-episode offset range in m (default: 0.002 0.010)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite an existing DIR")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_finetune)
@@ -128,42 +134,66 @@ def make_gate(base: Any, start: float | None = None) -> Any:
     )
 
 
-def _press_phase_start(base: Any, default: float = 0.75) -> float:
-    """Start of the press phase: the last tight interval of the machine frame in the base's
-    constraint report (``base.constraint_intervals()`` if it offers one), minus a margin."""
-    report = getattr(base, "constraint_intervals", None)
-    if not callable(report):
-        return default
-    try:
-        intervals = [iv for iv in report() if "machine" in str(iv.get("frame", "")).lower()]
-    except Exception:  # a report we do not understand: fall back to the documented default
-        return default
-    if not intervals:
-        return default
-    last = max(intervals, key=lambda iv: float(iv["start"]))
-    return max(0.0, float(last["start"]) - 0.05)
+PLACED_MARGIN = 0.05
+"""Phase after the demonstrations' mean ``cup_placed`` phase at which the gate is fully open."""
+
+
+def _press_phase_start(base: Any, default: float = 0.8) -> float:
+    """Where the press phase starts, from what the base learned from its demonstrations.
+
+    1. The mean phase at which the demonstrations had placed the cup (the GP policy's
+       ``constraint_report()["stage_phases"]["cup_placed"]``) plus :data:`PLACED_MARGIN`: after
+       the place, what is left is letting go, pulling back and pressing.
+    2. Else the start of the machine frame's last tight interval (Fig. 4b's press constraint).
+    3. Else ``default``.
+
+    The machine frame alone is not enough: with the teacher's demonstrations it stays tight
+    from the place to the press (one interval, phase 0.52-1.0), which would open the gate while
+    the cup is still being carried.
+    """
+    report_fn = getattr(base, "constraint_report", None)
+    if callable(report_fn):
+        try:
+            placed = report_fn().get("stage_phases", {}).get("cup_placed")
+        except Exception:  # a report we do not understand: try the next source
+            placed = None
+        if placed is not None:
+            return float(min(placed + PLACED_MARGIN, 0.95))
+    intervals_fn = getattr(base, "constraint_intervals", None)
+    if callable(intervals_fn):
+        try:
+            intervals = [
+                iv for iv in intervals_fn() if "machine" in str(iv.get("frame", "")).lower()
+            ]
+        except Exception:
+            intervals = []
+        if intervals:
+            return float(max(float(iv["start"]) for iv in intervals))
+    return default
 
 
 def build_env_fn(
     variant: str = "none",
     *,
-    bias: float = 0.15,
-    after: float | None = None,
+    offset_range: tuple[float, float] = (0.002, 0.010),
     env_kwargs: dict[str, Any] | None = None,
 ) -> Any:
-    """A picklable factory for the training/evaluation env (optionally the harder variant)."""
-    return _EnvFactory(variant, bias, after, dict(env_kwargs or {}))
+    """A picklable factory for the training/evaluation env, optionally the harder variant
+    ``"machine-offset"`` (:class:`~lgp_policy.residual.MachinePoseErrorWrapper`)."""
+    return _EnvFactory(variant, (float(offset_range[0]), float(offset_range[1])), env_kwargs)
 
 
 class _EnvFactory:
     def __init__(
-        self, variant: str, bias: float, after: float | None, env_kwargs: dict[str, Any]
+        self,
+        variant: str,
+        offset_range: tuple[float, float],
+        env_kwargs: dict[str, Any] | None,
     ) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
-        if variant != "none" and after is None:
-            raise ValueError("the harder variant needs the time (s) after which it acts")
-        self.variant, self.bias, self.after, self.env_kwargs = variant, bias, after, env_kwargs
+        self.variant, self.offset_range = variant, offset_range
+        self.env_kwargs = dict(env_kwargs or {})
 
     def __call__(self) -> Any:
         import gymnasium as gym
@@ -171,17 +201,11 @@ class _EnvFactory:
         import gym_coffee  # noqa: F401  (registers the env)
 
         env = gym.make(ENV_ID, **self.env_kwargs)
-        if self.variant == "press-bias":
-            from gym_coffee.env import OBS_SLICES
-            from lgp_policy.residual import ActuationNoiseWrapper
+        if self.variant == "machine-offset":
+            from lgp_policy.residual import MachinePoseErrorWrapper
 
-            env = ActuationNoiseWrapper(
-                env,
-                dims=[1, 3],
-                bias=[-self.bias, self.bias],
-                start_time=self.after,
-                time_index=OBS_SLICES["time"].start,
-            )
+            low, high = self.offset_range
+            env = MachinePoseErrorWrapper(env, low=low, high=high)
         return env
 
 
@@ -204,10 +228,7 @@ def run_finetune(args: argparse.Namespace) -> int:
         print(f"gym-coffee finetune: cannot load {base_path}: {exc}", file=sys.stderr)
         return 2
     gate = make_gate(base, args.gate_start)
-    after = args.variant_after
-    if after is None and args.variant != "none":
-        after = _gate_open_time(gate)
-    env_fn = build_env_fn(args.variant, bias=args.variant_bias, after=after)
+    env_fn = build_env_fn(args.variant, offset_range=tuple(args.variant_range))
     out = args.out or Path("runs") / f"finetune-{args.algo}-seed{args.seed}"
     try:
         result = finetune(
@@ -241,12 +262,3 @@ def run_finetune(args: argparse.Namespace) -> int:
         print(f"{key:<19}{first['rates'][key]:>8.2f}{value:>12.2f}")
     print(f"wrote {out / 'residual_policy.npz'}, {out / 'learning_curve.png'}")
     return 0
-
-
-def _gate_open_time(gate: Any) -> float:
-    """Seconds after reset at which an observation-time gate starts to open (for the variant)."""
-    if getattr(gate, "source", None) == "observation":
-        return float((gate.start - gate.ramp) * gate.time_scale)
-    from gym_coffee.env import CONTROL_DT, MAX_EPISODE_STEPS
-
-    return float((gate.start - gate.ramp) * MAX_EPISODE_STEPS * CONTROL_DT)

@@ -522,3 +522,45 @@ def test_press_reward_pays_the_stage_bonus_once():
     assert press_reward(13.9, done, placed) == pytest.approx(0.9 + 10.0 + 1.0)
     assert press_reward(0.9, info(1, carry=-0.1), placed) == pytest.approx(-0.1 - 1.0)
     assert press_reward(-3.5, {}, {}) == -3.5  # envs without these terms keep their reward
+
+
+def test_machine_pose_error_shifts_only_the_observed_machine_position():
+    from gym_coffee.env import OBS_SLICES
+    from lgp_policy.residual import MachinePoseErrorWrapper
+
+    plain, shifted = make_coffee(), MachinePoseErrorWrapper(make_coffee(), low=0.004, high=0.008)
+    o1, _ = plain.reset(seed=3)
+    o2, info = shifted.reset(seed=3)
+    delta = info["machine_pose_error"]
+    assert 0.004 <= delta <= 0.008
+    yaw = o1[OBS_SLICES["machine_yaw"]][0]
+    expected = o1[OBS_SLICES["machine_pos"]].copy()
+    expected[:2] -= delta * np.array([np.cos(yaw), np.sin(yaw)])
+    np.testing.assert_allclose(o2[OBS_SLICES["machine_pos"]], expected, atol=1e-6)
+    rest = np.ones(o1.shape, bool)
+    rest[OBS_SLICES["machine_pos"]] = False
+    np.testing.assert_array_equal(o1[rest], o2[rest])
+    a = np.zeros(8, np.float32)
+    np.testing.assert_array_equal(plain.step(a)[0][rest], shifted.step(a)[0][rest])
+    assert shifted.reset(seed=3)[1]["machine_pose_error"] == delta  # seeded
+
+
+def test_press_phase_start_from_the_demonstrations_stage_phases():
+    from lgp_policy.residual_cli import PLACED_MARGIN, _press_phase_start, make_gate
+
+    class Reported(PendulumPD):
+        def constraint_report(self):
+            return {"stage_phases": {"cup_placed": 0.7, "button_pressed": 1.0}}
+
+        def constraint_intervals(self):
+            return [{"frame": "machine", "start": 0.5, "end": 1.0}]
+
+    class IntervalsOnly(PendulumPD):
+        def constraint_intervals(self):
+            return [{"frame": "machine", "start": 0.2}, {"frame": "machine", "start": 0.85}]
+
+    assert _press_phase_start(Reported()) == pytest.approx(0.7 + PLACED_MARGIN)
+    assert _press_phase_start(IntervalsOnly()) == pytest.approx(0.85)
+    assert _press_phase_start(object()) == pytest.approx(0.8)
+    gate = make_gate(Reported())
+    assert gate.source == "policy" and gate.start == pytest.approx(0.75)
