@@ -408,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
         "--max-grid", type=int, default=8000, help="largest n for the replicate-averaged exact GP"
     )
     parser.add_argument("--threshold", type=float, default=0.5)
-    parser.add_argument("--max-points", type=int, default=400)
+    parser.add_argument("--max-points", type=int, default=400, help="distinct inputs per model")
     parser.add_argument("--repeat", type=int, default=1, help="LocalGP fits per size (min)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-sklearn", action="store_true")

@@ -184,6 +184,17 @@ def fit_shared_hyperparameters(
     return theta
 
 
+def unique_rows(
+    X: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
+    """``np.unique(X, axis=0, return_inverse=True, return_counts=True)``, fast for 1 column."""
+    if X.shape[1] == 1:
+        u, inverse, counts = np.unique(X[:, 0], return_inverse=True, return_counts=True)
+        return u[:, None], inverse.reshape(-1), counts
+    U, inverse, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
+    return U, inverse.reshape(-1), counts
+
+
 def _cholesky_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
     """``(L L^T)^{-1}`` from the lower Cholesky factor (LAPACK ``potri``)."""
     inv, info = scipy.linalg.lapack.dpotri(L, lower=1)
@@ -205,8 +216,7 @@ class _Replicates:
     def __init__(self, X: NDArray[np.float64], y: NDArray[np.float64], collapse: bool) -> None:
         n = X.shape[0]
         if collapse:
-            U, inverse, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
-            inverse = inverse.reshape(-1)
+            U, inverse, counts = unique_rows(X)
         if not collapse or U.shape[0] == n:  # nothing to collapse: keep the given order
             U, inverse, counts = X, np.arange(n), np.ones(n, dtype=np.int64)
         self.X = U
@@ -392,7 +402,7 @@ class GaussianProcess:
                 noise += float(np.exp(sub[0])) if sub is not None else float(leaf.diag(X[:1])[0])
                 noise_idx.extend(range(start, start + p))
             else:
-                if sub is not None and isinstance(leaf, SquaredExponential) and p == 2:
+                if sub is not None and type(leaf) is SquaredExponential and p == 2:
                     out = leaf.from_sqdist(sub, self._training_sqdist(), eval_gradient)
                     Kl = out[0] if eval_gradient else out
                     if eval_gradient:
@@ -478,13 +488,22 @@ class GaussianProcess:
 
     def _solve(self) -> None:
         d = self._data
-        K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False)
+        K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, self.kernel_.theta)
         s = noise + self._alpha_u
         K[np.diag_indices_from(K)] += s / d.counts
         self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
+        self._train_noise = s / d.counts + self.jitter_  # K_y - K on the (unique) inputs
         self.alpha_ = scipy.linalg.cho_solve((self.L_, True), d.ybar, check_finite=False)
         self._noise_level = noise
-        self.log_marginal_likelihood_value_ = float(self._lml(self.kernel_.theta, False))
+        n_t = d.ybar.shape[1]
+        lml = (  # Eq. (4) from this factorisation
+            -0.5 * float(np.sum(d.ybar * self.alpha_))
+            - n_t * float(np.sum(np.log(np.diag(self.L_))))
+            - 0.5 * n_t * K.shape[0] * _LOG_2PI
+        )
+        if d.collapsed:
+            lml += self._replicate_correction(s, d.counts, d.scatter)
+        self.log_marginal_likelihood_value_ = float(lml)
 
     # ---------------------------------------------------------------- inference
     def log_marginal_likelihood(
@@ -515,6 +534,21 @@ class GaussianProcess:
         V = scipy.linalg.solve_triangular(self.L_, Ks.T, lower=True, check_finite=False)
         signal_diag = self.kernel_.diag(X) - self._noise_level
         var = signal_diag - np.einsum("ij,ij->j", V, V)  # Eq. (2), diagonal
+        return mean, np.maximum(var, 0.0)
+
+    def _latent_at_training(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Latent mean ``(m, n_targets)`` and variance ``(m,)`` at the (unique) training inputs.
+
+        With ``K_y = K + D`` (``D`` diagonal noise): ``K alpha = y - D alpha`` and
+        ``diag(K - K K_y^-1 K) = D - D^2 diag(K_y^-1)``, so no kernel evaluation and only a
+        triangular inverse are needed. Normalised units; rows follow ``self._data.X``.
+        """
+        D = self._train_noise
+        mean = self._data.ybar - D[:, None] * self.alpha_
+        Linv, info = scipy.linalg.lapack.dtrtri(self.L_, lower=1)
+        if info != 0:  # pragma: no cover - L_ comes from a successful factorisation
+            return self._predict_normalized(self._data.X)
+        var = D - D**2 * np.einsum("ij,ij->j", Linv, Linv)
         return mean, np.maximum(var, 0.0)
 
     def _out(self, a: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -30,7 +30,12 @@ import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
 from lgp_policy._validation import check_random_state, check_X, check_X_y
-from lgp_policy.gp import GaussianProcess, Optimizer, default_kernel, fit_shared_hyperparameters
+from lgp_policy.gp import (
+    GaussianProcess,
+    Optimizer,
+    default_kernel,
+    fit_shared_hyperparameters,
+)
 from lgp_policy.kernels import Kernel, SquaredExponential, WhiteNoise
 
 #: Floor of ``1 - var_f / r`` in the leverage correction of squared residuals.
@@ -74,6 +79,8 @@ class EMResult:
     noise_gps: list[GaussianProcess]
     noise_offsets: list[float]
     homoscedastic_kernel: Kernel
+    signal_kernel: Kernel
+    noise_kernel: Kernel
     n_iter: int
     converged: bool
 
@@ -92,6 +99,7 @@ def most_likely_em(
     collapse_replicates: bool = True,
     max_iter: int = 200,
     random_state: int | np.random.Generator | None = None,
+    refit_kernel: Kernel | None = None,
 ) -> EMResult:
     """Most-likely heteroscedastic EM (Kersting et al. 2007) on one or more data sets.
 
@@ -104,6 +112,7 @@ def most_likely_em(
         datasets: ``[(X (n_i, d), y (n_i,)), ...]``, targets already standardised.
         kernel: homoscedastic kernel of step 1 (with a WhiteNoise term).
         noise_kernel: z-process kernel.
+        refit_kernel: kernel of ``f`` in step 4 (default: ``kernel`` without its noise term).
     """
     rng = check_random_state(random_state)
     opt = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
@@ -122,13 +131,12 @@ def most_likely_em(
     if learn:
         fit_shared_hyperparameters(gps, random_state=rng, **opt)
     homoscedastic_kernel = gps[0].kernel_.clone()
-    groups = []
-    for X, _ in datasets:
-        U, inverse, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
-        counts = counts.astype(np.float64)
-        groups.append((U, inverse.reshape(-1), counts, _log_mean_chi2_bias(counts)))
+    groups = []  # the GP's own distinct inputs (its solve is on them): X, inverse, counts, bias
+    for gp in gps:
+        d = gp._data
+        groups.append((d.X, d.inverse, d.counts, _log_mean_chi2_bias(d.counts)))
     log_r = [np.log(gp.noise_variance(X)) for gp, (X, _) in zip(gps, datasets, strict=True)]
-    sig = signal_kernel(homoscedastic_kernel)
+    sig = signal_kernel(homoscedastic_kernel) if refit_kernel is None else refit_kernel.clone()
     zk = noise_kernel.clone()
     converged, n_iter = False, 0
     noise_gps: list[GaussianProcess] = []
@@ -140,7 +148,8 @@ def most_likely_em(
         for gp, (X, y), (U, inverse, counts, bias), lr in zip(
             gps, datasets, groups, log_r, strict=True
         ):
-            mu, std_f = gp.predict_latent(X)
+            mu_u, var_u = gp._latent_at_training()  # at the distinct inputs, then per sample
+            mu, std_f = mu_u[inverse, 0], np.sqrt(var_u[inverse])
             if n_samples is None:
                 # Squared residual over its expectation r - var_f (leverage-corrected): an
                 # unbiased r(x_i) * chi2_1 draw; averaged over replicates, log-bias removed.
@@ -164,8 +173,8 @@ def most_likely_em(
         if learn:
             fit_shared_hyperparameters(noise_gps, random_state=rng, **opt)
             zk = noise_gps[0].kernel_.clone()
-        new_log_r = [
-            zgp.predict(g[0])[g[1]] + off
+        new_log_r = [  # z at the training inputs (the z-process's own, distinct inputs)
+            zgp._latent_at_training()[0][:, 0][g[1]] + off
             for zgp, g, off in zip(noise_gps, groups, offsets, strict=True)
         ]
         # Step 4: GP with R = diag(r(x_i)), Eq. (5).
@@ -181,7 +190,7 @@ def most_likely_em(
         if change < tol:
             converged = True
             break
-    return EMResult(gps, noise_gps, offsets, homoscedastic_kernel, n_iter, converged)
+    return EMResult(gps, noise_gps, offsets, homoscedastic_kernel, sig, zk, n_iter, converged)
 
 
 class HeteroscedasticGP:
@@ -197,17 +206,20 @@ class HeteroscedasticGP:
         normalize_y: standardise ``y`` first; ``r(x)`` is reported in units of ``y``.
         max_em_iter: most EM iterations (step 2-4 above).
         tol: stop when ``max |delta log r(x_i)|`` falls below this.
-        n_samples: ``None`` uses the exact expectation of the squared residual; an int
-            averages that many posterior samples of ``f`` (Kersting's estimator), drawn from
-            ``random_state``.
+        n_samples: ``None`` (default): leverage-corrected squared residuals (module docstring);
+            an int: Kersting et al.'s estimator with that many samples from ``random_state``.
         random_state: seed for restarts and samples.
 
-    Multiple targets are fitted as independent models (one noise process each), kept in
-    ``estimators_``.
+    ``optimizer=None`` keeps both kernels as given (no hyperparameter learning in the EM).
+    Duplicated inputs are replicates (see :class:`~lgp_policy.gp.GaussianProcess`); the noise
+    estimate at an input averages its replicates. Multiple targets are fitted as independent
+    models (one noise process each), kept in ``estimators_`` (``None`` for a single target).
 
     Attributes:
-        gp_: final GP of ``f`` with ``alpha = r(x_i)`` (normalised units). ``noise_gp_``: the
-        z-process. ``n_iter_``, ``converged_``: EM iterations run and whether ``tol`` was met.
+        gp_: final GP of ``f`` with ``alpha = r(x_i)`` (normalised units).
+        noise_gp_: the z-process, fitted to ``log r - noise_offset_``.
+        homoscedastic_kernel_: the kernel of step 1 after fitting.
+        n_iter_, converged_: EM iterations run and whether ``tol`` was met.
     """
 
     def __init__(

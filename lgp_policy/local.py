@@ -7,39 +7,49 @@ Assignment (Algorithm 1). A point ``x`` joins the model whose centre ``c`` has t
 normalised covariance ``w = k(x, c) / sqrt(k(x, x) k(c, c))`` (for the squared exponential,
 ``exp(-|x - c|^2 / (2 l^2))``, in ``(0, 1]``) if ``w > threshold``; otherwise it opens a new model
 at ``x``. Centres are the running means of their points. The signal part of ``kernel`` with its
-*initial* hyperparameters defines ``w``. A model holding ``max_points`` points no longer accepts
-points (the next one opens a new model), which caps the cost of a model at ``O(max_points^3)``
-and keeps the whole fit near-linear in ``n``. Points are visited in the lexicographic order of
-``X`` (``order="sorted"``, the default): for the 1-D time input of learning from demonstration
-this puts the replicates of all demonstrations at one time step into the same model and makes
-the models contiguous time windows. ``order="given"`` runs Algorithm 1 in the data's order as in
-the paper.
+*initial* hyperparameters defines ``w``. A model holding ``max_points`` distinct inputs no longer
+accepts new inputs (the next one opens a new model). Replicates (the same input in several
+demonstrations) are solved exactly on their distinct inputs (see :mod:`lgp_policy.gp`) and cost
+nothing extra, so the cap bounds a model's cost at ``O(max_points^3)`` and keeps the whole fit
+near-linear in ``n``. Points are visited in the lexicographic order of ``X``
+(``order="sorted"``, the default): for the 1-D time input of learning from demonstration this puts
+the replicates of all demonstrations at one time step into the same model and makes the models
+contiguous time windows; for sorted 1-D inputs and a squared-exponential kernel the assignment runs
+in O(n) (same result as the general loop, tested). ``order="given"`` runs Algorithm 1 in the
+data's order as in the paper (replicates count once per consecutive run there).
 
 Hyperparameters. ``hyperparameters="shared"`` (default): one set of kernel (and z-process)
 hyperparameters for all local models, learnt by maximising the *sum* of the local models' log
 marginal likelihoods (the product-of-experts likelihood, Deisenroth & Ng 2015) over an evenly
-spread subset of at most ``n_shared_models`` local models, so that learning costs the same for any
-``n``; every local model then runs with them fixed. ``hyperparameters="local"`` (the paper's
-choice, Sec. IV: "individual parameterization and optimization"): every local model maximises its
-own log marginal likelihood from ``kernel``; with narrow local windows (many points, small
-``max_points``) the individual estimates become unreliable (a window shorter than a length scale
-cannot identify it), which is why it is not the default. ``hyperparameters="fixed"``: ``kernel``
-as given. The targets are standardised once globally (``normalize_y``), so every local model has
-the same zero-mean prior as the global GP.
+spread subset of at most ``n_shared_models`` local models, each thinned to at most
+``shared_points`` distinct inputs (every k-th, with its replicates), so that learning costs the
+same for any ``n``; every local model then runs (its heteroscedastic EM) with them fixed.
+``hyperparameters="local"`` (the paper's choice, Sec. IV: "individual parameterization and
+optimization"): every local model maximises its own log marginal likelihood from ``kernel``; with
+narrow local windows the individual estimates become unreliable (a window shorter than a length
+scale cannot identify it), which is why it is not the default. ``hyperparameters="fixed"``:
+``kernel`` as given. The targets are standardised once globally (``normalize_y``), so every local
+model has the same zero-mean prior as the global GP.
 
 Combination (Algorithm 2). Local *latent* (noise-free) predictions ``N(mu_l, v_l)`` are combined
 and the noise ``r(x)`` is added afterwards. Multiplying the noisy predictive distributions instead
 double-counts the noise and gives 95% coverage far below 0.95 (``combine_noisy=True`` reproduces
 that behaviour for comparison). Rules:
 
-* ``"product"``: Eqs. (8)-(9), ``v = (sum_l 1/v_l)^-1``, ``mu = v sum_l mu_l / v_l``;
+* ``"product"``: Eqs. (8)-(9), ``v = (sum_l 1/v_l)^-1``, ``mu = v sum_l mu_l / v_l``, over all
+  models (a model far from ``x`` contributes its prior; over-confident where models overlap and
+  pulled towards the prior by the many far models);
 * ``"rbcm"``: robust Bayesian committee machine (Deisenroth & Ng 2015) with
-  ``beta_l = (log s_l^2 - log v_l) / 2``, ``s_l^2`` the model's prior variance;
-* ``"nearest"``: moment-matched mixture of the models, weights ``pi_l ~ w_l(x) / v_l(x)``.
+  ``beta_l = (log s_l^2 - log v_l) / 2``, ``s_l^2`` the prior variance; note that with a single
+  model it does not reduce to that model (``beta != 1``), and its latent variance is smaller than
+  the best model's where ``beta > 1``;
+* ``"nearest"`` (default, the calibrated rule): moment-matched mixture of the ``n_neighbors``
+  models with the highest ``w(x)``, weights ``pi_l ~ w_l(x) / v_l(x)``; with one model it is that
+  model; its cost does not grow with the number of models.
 
 The noise is ``r(x) = sum_l rho_l(x) r_l(x)`` with ``rho_l`` proportional to the precision a model
-gains over its prior at ``x``, ``1/v_l - 1/s_l^2`` (zero for models without data near ``x``); far
-from all data ``rho_l`` is proportional to ``w_l``.
+gains over its prior at ``x``, ``1/v_l - 1/s_l^2`` (zero for models without data near ``x``); where
+no model has such information, the noise of the model with the nearest centre.
 """
 
 from __future__ import annotations
@@ -56,6 +66,7 @@ from lgp_policy.gp import (
     Optimizer,
     default_kernel,
     fit_shared_hyperparameters,
+    unique_rows,
 )
 from lgp_policy.heteroscedastic import (
     HeteroscedasticGP,
@@ -81,7 +92,7 @@ class LocalGP:
             ``SquaredExponential(1, 1) + WhiteNoise(0.1)``. Its signal part, with the initial
             hyperparameters, also defines the assignment weight ``w``.
         threshold: minimum weight ``w`` in ``(0, 1)`` for joining an existing model.
-        max_points: most training points per local model.
+        max_points: most distinct training inputs per local model (replicates are free).
         local_model: ``"heteroscedastic"`` (:class:`HeteroscedasticGP`) or ``"exact"``
             (:class:`GaussianProcess`).
         combine: ``"product"`` (Eqs. 8-9), ``"rbcm"`` or ``"nearest"`` (see module docstring).
@@ -89,6 +100,8 @@ class LocalGP:
             comparison only).
         hyperparameters: ``"shared"`` (default), ``"local"`` or ``"fixed"`` (module docstring).
         n_shared_models: most local models used to learn shared hyperparameters.
+        shared_points: most distinct inputs per such model used for that (every k-th).
+        n_neighbors: how many models (highest ``w``) the ``"nearest"`` rule mixes.
         order: ``"sorted"`` or ``"given"``: the order Algorithm 1 visits the points in.
         noise_kernel: z-process kernel of heteroscedastic local models.
         optimizer, n_restarts, max_em_iter: passed to the local models.
@@ -116,6 +129,8 @@ class LocalGP:
         combine_noisy: bool = False,
         hyperparameters: str = "shared",
         n_shared_models: int = 8,
+        shared_points: int = 100,
+        n_neighbors: int = 3,
         order: str = "sorted",
         noise_kernel: Kernel | None = None,
         optimizer: Optimizer = "L-BFGS-B",
@@ -132,6 +147,8 @@ class LocalGP:
         self.combine_noisy = combine_noisy
         self.hyperparameters = hyperparameters
         self.n_shared_models = n_shared_models
+        self.shared_points = shared_points
+        self.n_neighbors = n_neighbors
         self.order = order
         self.noise_kernel = noise_kernel
         self.optimizer = optimizer
@@ -152,6 +169,8 @@ class LocalGP:
                 "combine_noisy",
                 "hyperparameters",
                 "n_shared_models",
+                "shared_points",
+                "n_neighbors",
                 "order",
                 "noise_kernel",
                 "optimizer",
@@ -178,6 +197,12 @@ class LocalGP:
                 "hyperparameters must be 'shared', 'local' or 'fixed', "
                 f"got {self.hyperparameters!r}"
             )
+        for name in ("shared_points", "n_neighbors"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < (
+                2 if name == "shared_points" else 1
+            ):
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
         if not isinstance(self.n_shared_models, (int, np.integer)) or self.n_shared_models < 1:
             raise ValueError(
                 f"n_shared_models must be a positive int, got {self.n_shared_models!r}"
@@ -211,10 +236,20 @@ class LocalGP:
         new_group[1:] = np.any(Xv[1:] != Xv[:-1], axis=1)
         starts = np.flatnonzero(new_group)
         sizes = np.diff(np.append(starts, n))
+        if (
+            self.order == "sorted"
+            and X.shape[1] == 1
+            and isinstance(self._assign_kernel, SquaredExponential)
+        ):
+            centres_1d, model_of_group = self._assign_sorted_1d(Xv[starts, 0], sizes)
+            assignments = np.empty(n, dtype=np.int64)
+            assignments[visit] = np.repeat(model_of_group, sizes)
+            return centres_1d[:, None], assignments
         log_thr = np.log(self.threshold)
         centres = np.empty((0, X.shape[1]))
         sums: list[NDArray[np.float64]] = []
         counts: list[int] = []
+        n_distinct: list[int] = []
         model_of_group = np.empty(starts.shape[0], dtype=np.int64)
         centre_arr = np.empty((max(1, starts.shape[0]), X.shape[1]))
         n_models = 0
@@ -225,7 +260,7 @@ class LocalGP:
             if n_models:
                 centres = centre_arr[:n_models]
                 logw = self._weights(x[None, :], centres)[0]  # Algorithm 1, line 6
-                full = np.asarray(counts) + m > cap
+                full = np.asarray(n_distinct) >= cap  # a full model takes no new input
                 logw[full] = -np.inf
                 best = int(np.argmax(logw))  # line 10
                 if logw[best] > log_thr:  # line 11
@@ -235,13 +270,54 @@ class LocalGP:
                 n_models += 1
                 sums.append(np.zeros(X.shape[1]))
                 counts.append(0)
+                n_distinct.append(0)
             sums[p] = sums[p] + m * x  # line 13
             counts[p] += m
+            n_distinct[p] += 1
             centre_arr[p] = sums[p] / counts[p]  # line 15: centre = mean
             model_of_group[g] = p
         assignments = np.empty(n, dtype=np.int64)
         assignments[visit] = np.repeat(model_of_group, sizes)
         return centre_arr[:n_models].copy(), assignments
+
+    def _assign_sorted_1d(
+        self, x: NDArray[np.float64], sizes: NDArray[np.int64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """Algorithm 1 for increasing 1-D inputs ``x`` (distinct), replicate group ``sizes``.
+
+        Same result as the general loop, in O(n) time: with increasing inputs every centre is
+        at most the current input, so a model whose centre lies farther than the threshold
+        radius behind it can never be chosen again and is dropped from the candidates.
+        """
+        ls = float(np.asarray(self._assign_kernel.length_scale).reshape(-1)[0])
+        radius = float(np.sqrt(-2.0 * np.log(self.threshold))) * ls  # w > threshold inside
+        cap = self.max_points
+        centres: list[float] = []
+        sums: list[float] = []
+        counts: list[int] = []
+        n_distinct: list[int] = []
+        active: list[int] = []  # candidate models, in index order
+        model_of_group = np.empty(x.shape[0], dtype=np.int64)
+        for g, (xg, m) in enumerate(zip(x.tolist(), sizes.tolist(), strict=True)):
+            active = [p for p in active if xg - centres[p] < radius]
+            best, best_d = -1, radius
+            for p in active:  # Algorithm 1, lines 5-11 (highest w = smallest distance)
+                d = xg - centres[p]
+                if d < best_d and n_distinct[p] < cap:
+                    best, best_d = p, d
+            if best < 0:  # lines 17-19: new model at x
+                best = len(centres)
+                centres.append(xg)
+                sums.append(0.0)
+                counts.append(0)
+                n_distinct.append(0)
+                active.append(best)
+            sums[best] += m * xg  # line 13
+            counts[best] += m
+            n_distinct[best] += 1
+            centres[best] = sums[best] / counts[best]  # line 15: centre = mean
+            model_of_group[g] = best
+        return np.asarray(centres), model_of_group
 
     # ---------------------------------------------------------------- fitting
     def fit(self, X: ArrayLike, y: ArrayLike) -> LocalGP:
@@ -295,15 +371,41 @@ class LocalGP:
         self._prepare_prediction()
         return self
 
-    def _shared_subset(self, n_models: int) -> NDArray[np.int64]:
-        """Local models whose data learn the shared hyperparameters (evenly spread)."""
+    def _shared_data(self, X, index_sets) -> tuple[list[NDArray[np.int64]], bool]:
+        """Index sets that learn the shared hyperparameters, and whether they are complete.
+
+        At most ``n_shared_models`` local models, evenly spread, each thinned to at most
+        ``shared_points`` distinct inputs (every k-th, with all its replicates).
+        """
+        n_models = len(index_sets)
         k = min(n_models, self.n_shared_models)
-        return np.unique(np.round(np.linspace(0, n_models - 1, k)).astype(np.int64))
+        chosen = np.unique(np.round(np.linspace(0, n_models - 1, k)).astype(np.int64))
+        subsets, complete = [], len(chosen) == n_models
+        for i in chosen:
+            idx = index_sets[i]
+            _, inverse, _ = unique_rows(X[idx])
+            step = int(np.ceil((int(inverse.max()) + 1) / self.shared_points))
+            if step > 1:
+                keep = (inverse % step) == 0
+                idx = idx[keep] if np.count_nonzero(keep) >= 2 else idx
+                complete = False
+            subsets.append(idx)
+        return subsets, complete
 
     def _fit_exact(self, kernel, X, Yn, index_sets, rng) -> list[GaussianProcess]:
         target = (lambda idx: Yn[idx, 0]) if self._single_target else (lambda idx: Yn[idx])
+        if self.hyperparameters == "shared" and self.optimizer is not None:
+            subsets, _ = self._shared_data(X, index_sets)
+            learners = [
+                GaussianProcess(kernel, optimizer=None, normalize_y=False).fit(X[i], target(i))
+                for i in subsets
+            ]
+            fit_shared_hyperparameters(
+                learners, optimizer=self.optimizer, n_restarts=self.n_restarts, random_state=rng
+            )
+            kernel = learners[0].kernel_
         local_opt = self.optimizer if self.hyperparameters == "local" else None
-        models = [
+        return [
             GaussianProcess(
                 kernel,
                 optimizer=local_opt,
@@ -313,16 +415,6 @@ class LocalGP:
             ).fit(X[idx], target(idx))
             for idx in index_sets
         ]
-        if self.hyperparameters == "shared" and self.optimizer is not None:
-            subset = self._shared_subset(len(models))
-            fit_shared_hyperparameters(
-                [models[i] for i in subset],
-                optimizer=self.optimizer,
-                n_restarts=self.n_restarts,
-                random_state=rng,
-                apply_to=[m for i, m in enumerate(models) if i not in set(subset)],
-            )
-        return models
 
     def _fit_heteroscedastic(self, kernel, X, yn, index_sets, rng) -> list[HeteroscedasticGP]:
         noise_kernel = default_noise_kernel() if self.noise_kernel is None else self.noise_kernel
@@ -339,15 +431,17 @@ class LocalGP:
             "normalize_y": False,
             "max_em_iter": self.max_em_iter,
         }
+        refit_kernel = None
         if self.hyperparameters == "shared" and self.optimizer is not None:
-            # Learn the signal, noise and z-process hyperparameters once, on a fixed-size subset
-            # of the local models (sum of their LMLs), then run every model's EM with them fixed.
-            subset = self._shared_subset(len(datasets))
-            learned = most_likely_em([datasets[i] for i in subset], kernel, noise_kernel, **em)
+            # Learn the signal, noise and z-process hyperparameters once, on a bounded subset of
+            # the data (sum of the subsets' LMLs), then run every model's EM with them fixed.
+            subsets, complete = self._shared_data(X, index_sets)
+            learned = most_likely_em([(X[i], yn[i]) for i in subsets], kernel, noise_kernel, **em)
             kernel = learned.homoscedastic_kernel
-            noise_kernel = learned.noise_gps[0].kernel_
+            noise_kernel = learned.noise_kernel
+            refit_kernel = learned.signal_kernel
             params["noise_kernel"] = noise_kernel
-            if len(subset) == len(datasets):  # every model took part: its EM result is final
+            if complete:  # every model took part with all its data: its EM result is final
                 return [
                     HeteroscedasticGP._from_em(
                         learned, i, Xl, yl, 0.0, 1.0, kernel=kernel, **params
@@ -360,7 +454,12 @@ class LocalGP:
                 result = most_likely_em([(Xl, yl)], kernel, noise_kernel, **em)
             else:
                 result = most_likely_em(
-                    [(Xl, yl)], kernel, noise_kernel, **{**em, "optimizer": None}, learn=False
+                    [(Xl, yl)],
+                    kernel,
+                    noise_kernel,
+                    **{**em, "optimizer": None},
+                    learn=False,
+                    refit_kernel=refit_kernel,
                 )
             models.append(
                 HeteroscedasticGP._from_em(result, 0, Xl, yl, 0.0, 1.0, kernel=kernel, **params)
@@ -384,48 +483,77 @@ class LocalGP:
                 np.asarray(k.length_scale) if isinstance(k, SquaredExponential) else None
             )
 
-    def _local_predictions(self, X: NDArray[np.float64]):
+    def _relevant(self, X: NDArray[np.float64], logw: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """(L, n) mask of the local models evaluated at each test point.
+
+        ``"nearest"`` uses the ``n_neighbors`` models with the highest ``w`` (part of the rule's
+        definition). ``"product"`` and ``"rbcm"`` use every model except those whose training
+        inputs are all more than ``SKIP_DISTANCE`` length scales away: such a model's prediction
+        equals its prior to within ``exp(-SKIP_DISTANCE^2 / 2)`` (1e-18) relative, and the prior
+        is used for it exactly (tested). The nearest-centre model is always evaluated.
+        """
+        L, n = logw.shape[1], X.shape[0]
+        if self.combine == "nearest":
+            k = min(self.n_neighbors, L)
+            top = np.argpartition(-logw, k - 1, axis=1)[:, :k] if k < L else None
+            relevant = np.zeros((L, n), dtype=bool)
+            if top is None:
+                relevant[:] = True
+            else:
+                relevant[top.T, np.arange(n)[None, :]] = True
+        else:
+            relevant = np.ones((L, n), dtype=bool)
+            for l in range(L):
+                ls = self._skip_scale[l]
+                if ls is not None:
+                    lo, hi = self._boxes[l]
+                    gap = np.maximum(np.maximum(lo - X, X - hi), 0.0) / ls
+                    relevant[l] = np.sum(gap**2, axis=1) < SKIP_DISTANCE**2
+        relevant[np.argmax(logw, axis=1), np.arange(n)] = True
+        return relevant
+
+    def _local_predictions(self, X: NDArray[np.float64], relevant: NDArray[np.bool_]):
         """Per model: latent mean, latent var, noise var, prior var; each (L, n, n_targets).
 
-        A model whose training inputs are all more than ``SKIP_DISTANCE`` length scales away
-        from a test point predicts its prior there (``k(x*, X_l) < exp(-SKIP_DISTANCE^2 / 2)``
-        relative, i.e. below 1e-19): it is not evaluated, which keeps prediction near-linear.
+        Where a model is not ``relevant`` its mean is 0 and its variance the prior (and its
+        noise 0, unless ``combine_noisy``, which evaluates every model's noise).
         """
         L, n, t = len(self.models_), X.shape[0], self._y_mean.shape[0]
         mu = np.zeros((L, n, t))
         var = np.empty((L, n, t))
-        noise = np.empty((L, n, t))
+        noise = np.zeros((L, n, t))
         prior = np.empty((L, n, t))
         for l, model in enumerate(self.models_):
             prior_l = _prior_variance(model, X).reshape(n, -1)
             prior[l] = prior_l
             var[l] = prior_l
-            noise[l] = model.noise_variance(X).reshape(n, -1)
-            ls = self._skip_scale[l]
-            if ls is None:
-                near = np.ones(n, dtype=bool)
-            else:
-                lo, hi = self._boxes[l]
-                gap = np.maximum(np.maximum(lo - X, X - hi), 0.0) / ls
-                near = np.sum(gap**2, axis=1) < SKIP_DISTANCE**2
+            near = relevant[l]
+            if self.combine_noisy:
+                noise[l] = model.noise_variance(X).reshape(n, -1)
             if not np.any(near):
                 continue
-            m, s = model.predict_latent(X[near])
+            Xn = X[near]
+            m, s = model.predict_latent(Xn)
             mu[l, near] = m.reshape(m.shape[0], -1)
             var[l, near] = (s**2).reshape(m.shape[0], -1)
+            if not self.combine_noisy:
+                noise[l, near] = model.noise_variance(Xn).reshape(m.shape[0], -1)
         return mu, np.maximum(var, 1e-12), noise, prior
 
     def _combine(self, X: NDArray[np.float64]):
-        mu, var, noise, prior = self._local_predictions(X)  # Algorithm 2, lines 1-6
-        logw = self._weights(X, self.centers_).T[:, :, None]  # (L, n, 1)
+        logw_nl = self._weights(X, self.centers_)  # (n, L)
+        relevant = self._relevant(X, logw_nl)
+        mu, var, noise, prior = self._local_predictions(X, relevant)  # Algorithm 2, lines 1-6
+        logw = logw_nl.T[:, :, None]  # (L, n, 1)
         # Noise r(x), added after combining: the local noise functions weighted by how much each
-        # model knows about f(x) (its precision gain over the prior); far from all data, by w.
-        gain = np.maximum(1.0 / var - 1.0 / prior, 0.0)
+        # model knows about f(x) (its precision gain over the prior); where no model knows
+        # anything, the noise of the model with the nearest centre.
+        gain = np.where(relevant[:, :, None], np.maximum(1.0 / var - 1.0 / prior, 0.0), 0.0)
         total = np.sum(gain, axis=0, keepdims=True)
-        rho_w = np.exp(logw - logsumexp(logw, axis=0, keepdims=True))
-        rho = np.where(
-            total > 1e-9 * np.max(1.0 / prior, axis=0), gain / np.maximum(total, 1e-300), rho_w
-        )
+        nearest = np.zeros_like(gain)
+        nearest[np.argmax(logw_nl, axis=1), np.arange(X.shape[0])] = 1.0
+        informed = total > 1e-9 * np.max(1.0 / prior, axis=0)
+        rho = np.where(informed, gain / np.maximum(total, 1e-300), nearest)
         r = np.sum(rho * noise, axis=0)
         if self.combine_noisy:
             var = var + noise
@@ -436,13 +564,14 @@ class LocalGP:
             v = 1.0 / prec
         elif self.combine == "rbcm":
             beta = 0.5 * (np.log(prior) - np.log(var))
+            rho_w = np.exp(logw - logsumexp(logw, axis=0, keepdims=True))
             prior_var = np.sum(rho_w * prior, axis=0)
             prec = np.sum(beta / var, axis=0) + (1.0 - np.sum(beta, axis=0)) / prior_var
             prec = np.maximum(prec, 1.0 / prior_var)
             mean = np.sum(beta * mu / var, axis=0) / prec
             v = 1.0 / prec
-        else:  # "nearest": moment-matched mixture, weights w_l / v_l
-            logpi = logw - np.log(var)
+        else:  # "nearest": moment-matched mixture of the n_neighbors models, weights w_l / v_l
+            logpi = np.where(relevant[:, :, None], logw - np.log(var), -np.inf)
             pi = np.exp(logpi - logsumexp(logpi, axis=0, keepdims=True))
             mean = np.sum(pi * mu, axis=0)
             v = np.maximum(np.sum(pi * (var + mu**2), axis=0) - mean**2, 1e-12)

@@ -176,3 +176,13 @@ def test_bad_arguments_raise(data):
         gp.log_marginal_likelihood(np.zeros(5))
     with pytest.raises(ValueError, match="not fitted"):
         GaussianProcess().predict(np.zeros((2, 1)))
+
+
+@pytest.mark.parametrize("collapse", [True, False])
+def test_latent_at_training_shortcut_equals_prediction(data, collapse):
+    X, y = data
+    gp = GaussianProcess(_kernel(), alpha=0.01, collapse_replicates=collapse).fit(X, y)
+    mean, var = gp._latent_at_training()
+    ref_mean, ref_var = gp._predict_normalized(gp._data.X)
+    np.testing.assert_allclose(mean, ref_mean, atol=1e-9)
+    np.testing.assert_allclose(var, ref_var, atol=1e-9)

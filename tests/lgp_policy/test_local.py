@@ -78,7 +78,9 @@ def test_assignment_structure():
     L = len(lgp.models_)
     assert lgp.centers_.shape == (L, 1) and lgp.assignments_.shape == (2000,)
     counts = np.bincount(lgp.assignments_, minlength=L)
-    assert L > 1 and counts.min() >= 1 and counts.max() <= 100
+    distinct = [np.unique(X[lgp.assignments_ == l]).size for l in range(L)]
+    assert L > 1 and counts.min() >= 1 and max(distinct) == 100  # the cap binds
+    assert counts.max() == 400  # 4 replicates per distinct input, free
     for l in range(L):  # Algorithm 1, line 15: centre = mean of the model's inputs
         np.testing.assert_allclose(lgp.centers_[l], X[lgp.assignments_ == l].mean(axis=0))
     # sorted order: replicates of one time step share a model
@@ -105,7 +107,7 @@ def test_latent_product_is_calibrated_noisy_product_is_not():
     """Multiplying noisy local predictions pulls to the prior and under-covers (known trap)."""
     X, y = demos(2000)
     X_test, y_test = held_out()
-    params = {"threshold": 0.5, "max_points": 100, "local_model": "exact", "combine": "product"}
+    params = {"threshold": 0.5, "max_points": 25, "local_model": "exact", "combine": "product"}
     latent = LocalGP(kernel(), **params).fit(X, y)
     noisy = LocalGP(kernel(), combine_noisy=True, **params).fit(X, y)
     cov_latent, cov_noisy = coverage(latent, X_test, y_test), coverage(noisy, X_test, y_test)
@@ -121,7 +123,7 @@ def test_latent_product_is_calibrated_noisy_product_is_not():
 def test_calibrated_heteroscedastic_local_models(combine):
     X, y = demos(2000, seed=1)
     X_test, y_test = held_out(seed=7)
-    lgp = LocalGP(kernel(), threshold=0.5, max_points=200, combine=combine, random_state=0)
+    lgp = LocalGP(kernel(), threshold=0.5, max_points=50, combine=combine, random_state=0)
     lgp.fit(X, y)
     assert 0.92 <= coverage(lgp, X_test, y_test) <= 0.98
     grid = np.linspace(0.5, 9.5, 10)[:, None]
@@ -133,7 +135,9 @@ def test_skipping_far_models_is_exact(monkeypatch):
     X, y = demos(2000)
     Xs = np.linspace(0.0, 10.0, 301)[:, None]
     short = SquaredExponential(1.0, 0.2) + WhiteNoise(0.01)
-    lgp = LocalGP(short, max_points=100, local_model="exact", hyperparameters="fixed").fit(X, y)
+    lgp = LocalGP(
+        short, max_points=25, local_model="exact", hyperparameters="fixed", combine="product"
+    ).fit(X, y)
     skipped = [
         np.mean(np.maximum(lo - Xs[:, 0], Xs[:, 0] - hi) > local_module.SKIP_DISTANCE * ls)
         for (lo, hi), ls in zip(lgp._boxes[:, :, 0], lgp._skip_scale, strict=True)
@@ -148,19 +152,19 @@ def test_skipping_far_models_is_exact(monkeypatch):
 def test_deterministic_and_multi_target():
     X, y = demos(800)
     Y = np.column_stack([y, -2.0 * y])
-    a = LocalGP(kernel(), max_points=200, local_model="exact", random_state=1).fit(X, Y)
-    b = LocalGP(kernel(), max_points=200, local_model="exact", random_state=1).fit(X, Y)
+    a = LocalGP(kernel(), max_points=50, local_model="exact", random_state=1).fit(X, Y)
+    b = LocalGP(kernel(), max_points=50, local_model="exact", random_state=1).fit(X, Y)
     Xs = np.linspace(0.0, 10.0, 21)[:, None]
     np.testing.assert_array_equal(a.predict(Xs), b.predict(Xs))
     mean, std = a.predict(Xs, return_std=True)
     assert mean.shape == std.shape == (21, 2)
     np.testing.assert_allclose(mean[:, 1], -2.0 * mean[:, 0], atol=1e-8)
     assert np.isfinite(a.log_marginal_likelihood())
-    het = LocalGP(kernel(), max_points=200, random_state=1).fit(X, Y)
+    het = LocalGP(kernel(), max_points=50, random_state=1).fit(X, Y)
     mean, std = het.predict(Xs, return_std=True)
     assert mean.shape == std.shape == het.noise_variance(Xs).shape == (21, 2)
     assert len(het.models_) == 2 and len(het.models_[0]) == len(het.centers_)
-    single = LocalGP(kernel(), max_points=200, random_state=het.estimators_[0].random_state)
+    single = LocalGP(kernel(), max_points=50, random_state=het.estimators_[0].random_state)
     np.testing.assert_allclose(single.fit(X, y).predict(Xs), mean[:, 0], atol=1e-6)
 
 
@@ -188,3 +192,22 @@ def test_bad_input():
     lgp = LocalGP(kernel(), local_model="exact").fit(*demos(40))
     with pytest.raises(ValueError, match="NaN"):
         lgp.predict(np.array([[np.nan]]))
+
+
+def test_fast_sorted_1d_assignment_equals_general_loop():
+    """The O(n) path for sorted 1-D inputs gives Algorithm 1's general result."""
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        n = int(rng.integers(10, 2000))
+        X = np.round(rng.uniform(0.0, 10.0, (n, 1)), int(rng.integers(1, 4)))
+        threshold, cap = float(rng.uniform(0.05, 0.95)), int(rng.integers(2, 300))
+        ls = float(rng.uniform(0.05, 3.0))
+        fast = LocalGP(threshold=threshold, max_points=cap)
+        fast._assign_kernel = SquaredExponential(1.0, ls)
+        general = LocalGP(threshold=threshold, max_points=cap)
+        # the same correlation w, but not a single SquaredExponential: takes the general loop
+        general._assign_kernel = SquaredExponential(0.5, ls) + SquaredExponential(0.5, ls)
+        c_fast, a_fast = fast._assign(X)
+        c_gen, a_gen = general._assign(X)
+        np.testing.assert_array_equal(a_fast, a_gen)
+        np.testing.assert_allclose(c_fast, c_gen, rtol=1e-12)
