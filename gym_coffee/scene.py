@@ -124,6 +124,8 @@ class CoffeeScene:
 
         Loading afresh at every reset drops the contact caches of the previous episode, so an
         episode does not depend on what happened before the reset (Gymnasium's determinism checks).
+        (PyBullet's ``saveState``/``restoreState`` does not restore those caches: a restored episode
+        differs from a fresh one in the 5th decimal.)
         """
         sim = self.sim
         for name in self.BODIES:

@@ -67,7 +67,6 @@ class Simulation:
         self.solver_iterations = int(solver_iterations)
         self.bodies: dict[str, int] = {}
         self._inertial_offset: dict[str, NDArray[np.float64]] = {}
-        self._state_id: int | None = None
         self.reset_world()
 
     # ------------------------------------------------------------------ world
@@ -95,25 +94,12 @@ class Simulation:
         )
         self.bodies.clear()
         self._inertial_offset.clear()
-        self._state_id = None
 
     def step(self) -> None:
         """Advance the physics by ``n_substeps`` physics steps."""
         step = self.p.stepSimulation
         for _ in range(self.n_substeps):
             step()
-
-    def save_state(self) -> None:
-        """Remember the whole physics state (in memory) for :meth:`restore_state`."""
-        if self._state_id is not None:
-            self.p.removeState(self._state_id)
-        self._state_id = self.p.saveState()
-
-    def restore_state(self) -> None:
-        """Restore the state remembered by :meth:`save_state`."""
-        if self._state_id is None:
-            raise RuntimeError("no saved state")
-        self.p.restoreState(stateId=self._state_id)
 
     def close(self) -> None:
         """Disconnect from the physics server (safe to call more than once)."""
