@@ -218,12 +218,17 @@ class SquaredExponential(Kernel):
         Lets a solver cache the distances of its training inputs across hyperparameter values.
         With ``eval_gradient`` returns ``(K, [dK/dtheta_0, dK/dtheta_1])`` (a list of matrices).
         """
-        d2 = sqdist * np.exp(-2.0 * theta[1])
-        K = np.exp(-0.5 * d2)
-        K *= np.exp(theta[0])  # Eq. (3)
         if not eval_gradient:
+            K = np.multiply(sqdist, -0.5 * np.exp(-2.0 * theta[1]))
+            np.exp(K, out=K)
+            K *= np.exp(theta[0])  # Eq. (3)
             return K
-        return K, [K, K * d2]
+        d2 = sqdist * np.exp(-2.0 * theta[1])
+        K = np.multiply(d2, -0.5)
+        np.exp(K, out=K)
+        K *= np.exp(theta[0])  # Eq. (3)
+        d2 *= K
+        return K, [K, d2]
 
     def get_params(self) -> dict[str, Any]:
         return {
