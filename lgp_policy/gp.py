@@ -264,8 +264,10 @@ class GaussianProcess:
     share one set of hyperparameters: the LML is the sum over targets (as in scikit-learn). Fit
     one estimator per column for separate hyperparameters.
 
-    Duplicated inputs are legitimate replicates, not an error; without any noise term they make
-    ``K`` singular and fitting raises :class:`NotPositiveDefiniteError` with the remedy.
+    Duplicated inputs are legitimate replicates, not an error: with a noise term (or ``alpha``)
+    they are collapsed exactly. Without any noise they make ``K`` singular; growing jitter
+    (``JITTER_STEPS``, reported in ``jitter_``) is added to the diagonal, and if that is not
+    enough fitting raises :class:`NotPositiveDefiniteError`, which names the remedy.
 
     Attributes:
         kernel_: the fitted kernel. ``X_train_``, ``y_train_``: the training data.
@@ -578,7 +580,7 @@ class GaussianProcess:
         return mean, self._out(np.sqrt(var_f)[:, None] * self._y_std)
 
     def noise_variance(self, X: ArrayLike) -> NDArray[np.float64]:
-        """Observation-noise variance (the fitted WhiteNoise level) at ``X``, in units of y.
+        """Observation-noise variance (the fitted WhiteNoise level) at ``X``, in units of y^2.
 
         Returns:
             ``(n,)`` for a single target, ``(n, n_targets)`` otherwise.
