@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
             from gym_coffee.cli import record_video
 
             path = record_video(env_id, demo, args.video)
-            print(f"wrote {path} (seed {demo.seed}, {demo.n_steps} frames)")
+            print(f"wrote {path} (replay of seed {demo.seed}, {demo.n_steps} steps)")
         if args.frames is not None:
             for path in save_frames(env_id, demo, args.frames):
                 print(f"wrote {path}")

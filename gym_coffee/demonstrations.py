@@ -302,8 +302,10 @@ class DemonstrationSet(Sequence[Demonstration]):
     __hash__ = None  # type: ignore[assignment]
 
     def __repr__(self) -> str:
+        seeds = self.seeds
+        shown = str(seeds) if len(seeds) <= 8 else f"[{seeds[0]}, {seeds[1]}, ..., {seeds[-1]}]"
         return (
-            f"DemonstrationSet({len(self)} demonstrations, seeds={self.seeds}, "
+            f"DemonstrationSet({len(self)} demonstrations, seeds={shown}, "
             f"env_id={self.metadata.get('env_id')!r})"
         )
 
