@@ -174,3 +174,13 @@ def test_failures_terminate_with_a_penalty(env, position, quat):
     assert terminated and not truncated and not info["is_success"]
     assert info["reward_failure"] < 0
     check_reward_terms(reward, info)
+
+
+def test_rgb_array_render():
+    env = CoffeeEnv(render_mode="rgb_array", width=160, height=120)
+    env.reset(seed=0)
+    frame = env.render()
+    assert frame.shape == (120, 160, 3) and frame.dtype == np.uint8
+    assert frame.std() > 10  # not a blank image
+    env.close()
+    env.close()  # idempotent
