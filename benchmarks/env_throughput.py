@@ -21,11 +21,12 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -64,12 +65,12 @@ def time_random_steps(env: gym.Env, n_steps: int, seed: int) -> float:
     return elapsed
 
 
-def time_teacher_steps(env: gym.Env, n_steps: int, seed: int) -> tuple[float, int]:
-    """Wall seconds for about ``n_steps`` teacher steps (teacher + step; resets not counted)."""
+def time_teacher_steps(env: gym.Env, n_steps: int, seed: int) -> tuple[float, float, int]:
+    """Wall seconds of (teacher + step, teacher alone) for about ``n_steps`` teacher steps."""
     from gym_coffee.demonstrations import _make_teacher
     from gym_coffee.teacher import ScriptedTeacher
 
-    done_steps, elapsed, episode = 0, 0.0, 0
+    done_steps, elapsed, acting, episode = 0, 0.0, 0.0, 0
     while done_steps < n_steps:
         obs, _ = env.reset(seed=seed + episode)
         teacher = _make_teacher(ScriptedTeacher, env, seed + episode, {})
@@ -77,12 +78,14 @@ def time_teacher_steps(env: gym.Env, n_steps: int, seed: int) -> tuple[float, in
         while done_steps < n_steps:
             t0 = time.perf_counter()
             action = teacher.act(obs)
+            t1 = time.perf_counter()
             obs, _, terminated, truncated, _ = env.step(action)
             elapsed += time.perf_counter() - t0
+            acting += t1 - t0
             done_steps += 1
             if terminated or truncated:
                 break
-    return elapsed, done_steps
+    return elapsed, acting, done_steps
 
 
 def time_resets(env: gym.Env, n: int, seed: int) -> float:
@@ -107,8 +110,27 @@ def time_render(env: gym.Env, n: int, seed: int) -> tuple[float, tuple[int, ...]
     return max(step_and_render - step_only, 0.0), tuple(frame.shape)
 
 
+@contextlib.contextmanager
+def quiet_stdout() -> Iterator[None]:
+    """Silence C-level stdout (PyBullet prints ``argv[0]=`` on every connect)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def make(env_id: str, **kwargs: Any) -> gym.Env:
+    with quiet_stdout():
+        return gym.make(env_id, **kwargs)
+
+
 def measure(env_id: str, args: argparse.Namespace, rep: int, teacher: bool) -> dict[str, Any]:
-    env = gym.make(env_id)
+    env = make(env_id)
     try:
         dt = sim_dt(env)
         wall = time_random_steps(env, args.steps, seed=rep)
@@ -119,13 +141,15 @@ def measure(env_id: str, args: argparse.Namespace, rep: int, teacher: bool) -> d
             "reset_ms": 1e3 * time_resets(env, args.resets, seed=100 + rep),
         }
         if teacher:
-            wall, n = time_teacher_steps(env, args.steps, seed=rep * 1000)
+            wall, acting, n = time_teacher_steps(env, args.steps, seed=rep * 1000)
             out["teacher_sps"] = n / wall
             out["teacher_rtf"] = n * dt / wall
+            out["teacher_act_ms"] = 1e3 * acting / n
+            out["teacher_step_ms"] = 1e3 * (wall - acting) / n
     finally:
         env.close()
     if args.render > 0:
-        env = gym.make(env_id, render_mode="rgb_array")
+        env = make(env_id, render_mode="rgb_array")
         try:
             render_s, shape = time_render(env, args.render, seed=rep)
             out["render_ms"] = 1e3 * render_s
@@ -166,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         ("random actions: real-time factor", "random_rtf", "{:.1f}x"),
         ("teacher: steps/s", "teacher_sps", "{:.0f}"),
         ("teacher: real-time factor", "teacher_rtf", "{:.1f}x"),
+        ("teacher: act() ms/step", "teacher_act_ms", "{:.2f}"),
+        ("teacher: env.step() ms/step", "teacher_step_ms", "{:.2f}"),
         ("reset (ms)", "reset_ms", "{:.1f}"),
         ("render rgb_array (ms/frame)", "render_ms", "{:.1f}"),
         ("render size (h, w, c)", "render_shape", "{}"),
