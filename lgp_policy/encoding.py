@@ -228,7 +228,8 @@ class DemonstrationEncoder:
         Args:
             times: per demonstration, ``(n_i,)`` time stamps.
             joint_pos: per demonstration, ``(n_i, d_joint)`` joint positions (plus gripper).
-            ee_pos: per demonstration, ``(n_i, 3)`` end-effector positions (world frame).
+            ee_pos: per demonstration, ``(n_i, 3)`` end-effector positions (world frame), or
+                ``(n_i, 3 m)`` for ``m`` points on the hand (each transformed into the frames).
             frames: per demonstration, ``{object name: (origin (3,), rotation (3, 3))}``, the
                 object's *initial* pose in the world frame. Every demonstration must name the
                 same objects.
@@ -270,7 +271,11 @@ class DemonstrationEncoder:
             for t, x, f in zip(times, ee_pos, frames, strict=True):
                 origin, rotation = (np.asarray(a, dtype=float) for a in f[name])
                 x = np.asarray(x, dtype=float)
-                rel.append(resample(t, (x - origin) @ rotation, self.n_steps))  # R^T (x - o)
+                if x.ndim != 2 or x.shape[1] % 3:
+                    raise ValueError(f"ee_pos must be (n_steps, 3 * n_points), got {x.shape}")
+                pts = x.reshape(len(x), -1, 3)  # every 3-D point on the hand
+                local = ((pts - origin) @ rotation).reshape(len(x), -1)  # R^T (x - o)
+                rel.append(resample(t, local, self.n_steps))
             data[name] = np.stack(rel)
         self.data_ = data
         self.frame_names_ = [JOINT_FRAME, *names]

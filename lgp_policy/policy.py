@@ -45,7 +45,6 @@ from lgp_policy.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_rep
 from lgp_policy.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
-    DEFAULT_NULL_SPACE_STD,
     DEFAULT_RIDGE,
     FrameEstimate,
     limit_step,
@@ -165,10 +164,14 @@ class GPDemonstrationPolicy:
     combine        ``LocalGP`` combination: ``product`` (Eqs. 8-9) or the calibrated rule
     frames         object frames to use (default: all in the demonstrations); ``()`` = joint only
     alpha          null-space weight of Algorithm 3 (0.5 in the paper)
-    null_space_std std (rad) of a frame's opinion in the null space (regularisation)
+    null_space_std ``None``: a frame's null-space information = the joint estimate's; or a std (rad)
     lookahead      control steps ahead at which the GPs are read (compensates tracking lag)
     max_joint_step largest joint change per step (rad); default the env's ``MAX_JOINT_STEP``
     std_scale      per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
+    approach_offset m; adds a second task point this far behind the grasp point along the
+                   hand's approach (z) axis, so each object frame also encodes the approach
+                   direction (task vector p = 6); ``None``: position only (p = 3, the paper).
+                   Needs ``robot.forward_pose`` and ``robot.jacobian`` (``PandaKinematics``)
     encoder_kwargs extra arguments for :class:`~lgp_policy.encoding.DemonstrationEncoder`
     ============== ===================================================================
 
@@ -190,10 +193,11 @@ class GPDemonstrationPolicy:
         combine: str = "product",
         frames: Sequence[str] | None = None,
         alpha: float = DEFAULT_ALPHA,
-        null_space_std: float = DEFAULT_NULL_SPACE_STD,
+        null_space_std: float | None = None,
         lookahead: float = 1.0,
         max_joint_step: float | None = None,
         std_scale: Mapping[str, float] | None = None,
+        approach_offset: float | None = 0.1,
         encoder_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         self.robot = robot
@@ -207,6 +211,7 @@ class GPDemonstrationPolicy:
         self.lookahead = lookahead
         self.max_joint_step = max_joint_step
         self.std_scale = std_scale
+        self.approach_offset = approach_offset
         self.encoder_kwargs = encoder_kwargs
 
     # -------------------------------------------------------------- parameters
@@ -223,6 +228,7 @@ class GPDemonstrationPolicy:
             "lookahead": self.lookahead,
             "max_joint_step": self.max_joint_step,
             "std_scale": None if self.std_scale is None else dict(self.std_scale),
+            "approach_offset": self.approach_offset,
             "encoder_kwargs": None if self.encoder_kwargs is None else dict(self.encoder_kwargs),
         }
 
@@ -259,7 +265,23 @@ class GPDemonstrationPolicy:
             )
             for d in demos
         ]
+        robot = self.robot if self.robot is not None else _default_robot()
         ees = [np.asarray(d.ee_pos, dtype=float) for d in demos]
+        if self.approach_offset is not None:  # second point along the hand's approach axis
+            ees = [
+                np.hstack(
+                    [
+                        ee,
+                        np.stack(
+                            [
+                                hand_points(robot, q, self.approach_offset)[0][3:]
+                                for q in np.asarray(d.joint_pos, dtype=float)
+                            ]
+                        ),
+                    ]
+                )
+                for ee, d in zip(ees, demos, strict=True)
+            ]
         all_frames = [demonstration_frames(d) for d in demos]
         names = sorted(all_frames[0]) if self.frames is None else list(self.frames)
         for n in names:
@@ -349,12 +371,23 @@ class GPDemonstrationPolicy:
         joint_mean, joint_var = row[jm], row[jv]
         n_joints = q.shape[0]
         estimates = []
+        x = J = None
         for name in self.frame_names_[1:]:
             origin, R = _frame_from_obs(obs, name, sl)
             if origin is None:  # footnote 2: object not detected
                 continue
             mcol, vcol = self._cols[name]
-            estimates.append(FrameEstimate(origin + R @ row[mcol], (R * row[vcol]) @ R.T))
+            m, v = row[mcol], row[vcol]
+            if m.shape[0] == 3:
+                estimates.append(FrameEstimate(origin + R @ m, (R * v) @ R.T))
+                continue
+            if x is None:
+                x, J = hand_points(self.robot_, q, self.approach_offset)
+            pos = (origin + m.reshape(-1, 3) @ R.T).reshape(-1)
+            cov = np.zeros((m.shape[0], m.shape[0]))
+            for b in range(0, m.shape[0], 3):
+                cov[b : b + 3, b : b + 3] = (R * v[b : b + 3]) @ R.T
+            estimates.append(FrameEstimate(pos, cov))
         dq, cov = reproduction_step(
             self.robot_,
             q,
@@ -365,6 +398,8 @@ class GPDemonstrationPolicy:
             null_space_std=self.null_space_std,
             damping=DEFAULT_DAMPING,
             ridge=DEFAULT_RIDGE,
+            ee_pos=x,
+            jacobian=J,
         )
         gripper = float(joint_mean[n_joints]) if joint_mean.shape[0] > n_joints else 0.0
         step = limit_step(dq, self.max_joint_step_)
@@ -440,7 +475,7 @@ class GPDemonstrationPolicy:
             "stage_phases": {stage: mean phase over demonstrations},
             "checks": [{"stage", "phase", "expected_frame", "tight", "interval"}...]}``.
         """
-        objects = {n: self.std_[n] for n in self.frame_names_ if n != JOINT_FRAME}
+        objects = {n: self.std_[n][:, :3] for n in self.frame_names_ if n != JOINT_FRAME}
         intervals = intervals_report(objects, self.phase_grid_, ratio=ratio, min_width=min_width)
         phases: dict[str, float | None] = {}
         for stage in STAGE_NAMES:
@@ -599,6 +634,24 @@ class GPDemonstrationPolicy:
     def __repr__(self) -> str:
         fitted = f", frames={self.frame_names_}" if hasattr(self, "frame_names_") else ""
         return f"GPDemonstrationPolicy(model={self.model!r}, alpha={self.alpha}{fitted})"
+
+
+def hand_points(
+    robot: Any, q: NDArray[np.float64], offset: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The grasp point and a point ``offset`` behind it on the hand's approach (z) axis, stacked
+    ``(6,)``, and their Jacobian ``(6, k)``.
+
+    With ``p`` the grasp point, ``z`` the approach axis and ``omega_i`` the angular-velocity
+    column ``i`` of the geometric Jacobian: ``d(p - offset z)/dq_i = J_p[:, i] - offset
+    (omega_i x z)``.
+    """
+    p, R = robot.forward_pose(q)
+    J6 = np.asarray(robot.jacobian(q), dtype=float)
+    z = np.asarray(R, dtype=float)[:, 2]
+    Jp, Jw = J6[:3], J6[3:]
+    J2 = Jp - offset * np.cross(Jw.T, z).T
+    return np.concatenate([p, p - offset * z]), np.vstack([Jp, J2])
 
 
 def _obs_slices() -> dict[str, slice]:

@@ -17,13 +17,18 @@ cannot be inverted and the product of line 19 cannot be written with covariances
 precisions instead. For a full-row-rank ``J`` the pseudo-inverse of ``J^+ Sigma_x J^+^T`` is exactly
 ``J^T Sigma_x^-1 J`` (the information a Cartesian measurement with covariance ``Sigma_x`` gives
 about a joint increment). We regularise each frame's joint-space covariance by giving its null-space
-part a finite variance::
+part finite information::
 
-    Sigma^(m)_reg = J^+ Sigma_x J^+^T + s_N^2 (I - J^+ J)
-    Lambda^(m)    = Sigma^(m)_reg^-1 = J^T Sigma_x^-1 J + (I - J^+ J) / s_N^2
+    Lambda^(m) = J^T Sigma_x^-1 J + Lambda_N,
+    Lambda_N   = N Sigma_theta^-1 N        (default, null_space_std=None)
+               = N / s_N^2                 (null_space_std=s_N)
 
-so that the null-space term ``alpha (I - J^+ J) (theta_hat - theta_t)`` of line 16 keeps its meaning
-(with weight ``1 / s_N^2``; ``s_N = null_space_std``), and fuse::
+with ``N = I - J^+ J``, so that the null-space term ``alpha N (theta_hat - theta_t)`` of line 16
+keeps its meaning. By default a frame's opinion in the null space is exactly as certain as the
+joint-space estimate it comes from: where the demonstrations disagree in joint space (large
+``Sigma_theta``) the null-space pull is weak, where they agree it is strong. (A fixed ``s_N``
+lets an uncertain joint-space mean drive large null-space motions; measured on demonstrations
+whose wrist postures differ by radians.) Then fuse::
 
     Lambda = Lambda_theta + sum_m Lambda^(m) + eps I
     dtheta = Lambda^-1 (Lambda_theta (theta_hat - theta_t) + sum_m Lambda^(m) dtheta^(m))
@@ -62,8 +67,6 @@ __all__ = [
 
 DEFAULT_ALPHA = 0.5
 """Weight of the null-space term towards the joint-space estimate (Algorithm 3, line 2)."""
-DEFAULT_NULL_SPACE_STD = 0.5
-"""rad; std given to an object frame's opinion in the null space of ``J`` (regularisation)."""
 DEFAULT_DAMPING = 1e-3
 """m; damping ``lambda`` of the pseudo-inverse, negligible away from singularities."""
 DEFAULT_RIDGE = 1e-9
@@ -168,12 +171,18 @@ def reproduction_step(
     frames: Sequence[FrameEstimate] = (),
     *,
     alpha: float = DEFAULT_ALPHA,
-    null_space_std: float = DEFAULT_NULL_SPACE_STD,
+    null_space_std: float | None = None,
     damping: float = DEFAULT_DAMPING,
     ridge: float = DEFAULT_RIDGE,
     ee_pos: NDArray[np.float64] | None = None,
+    jacobian: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """One iteration of Algorithm 3's loop (lines 6-19) from the joint configuration ``q``.
+
+    The task vector has ``p`` elements (line 7): by default the end-effector position (``p = 3``,
+    ``robot.forward_kinematics`` / ``robot.position_jacobian``); pass ``ee_pos (p,)`` and
+    ``jacobian (p, k)`` for another task vector (e.g. two points on the hand, ``p = 6``), with
+    every frame's ``position (p,)`` and ``covariance (p, p)`` to match.
 
     Args:
         robot: kinematics (``RobotModel``).
@@ -183,11 +192,12 @@ def reproduction_step(
         frames: one :class:`FrameEstimate` per *detected* object (footnote 2: a missing object is
             simply left out).
         alpha: weight of the null-space term (line 16).
-        null_space_std: std (rad) of a frame's opinion in the null space of ``J``
-            (regularisation, see the module docstring).
+        null_space_std: ``None`` (default): a frame's null-space information is the joint-space
+            estimate's, projected; a float (rad): a fixed std instead (see the module docstring).
         damping: damping of the pseudo-inverse (m).
         ridge: added to the fused precision.
         ee_pos: ``x_t``; computed by forward kinematics when omitted.
+        jacobian: ``J(theta_t)``; ``robot.position_jacobian(q)`` when omitted.
 
     Returns:
         ``(dtheta (k,), covariance (k, k))``: the fused increment and its covariance.
@@ -198,17 +208,21 @@ def reproduction_step(
     means = [de]
     precisions = [prec_theta]
     if frames:
-        J = np.asarray(robot.position_jacobian(q), dtype=float)  # line 8
+        J = np.asarray(robot.position_jacobian(q) if jacobian is None else jacobian, dtype=float)
+        # line 8 (p x k)
         J_pinv = damped_pseudoinverse(J, damping)  # line 10
         N = np.eye(q.shape[0]) - J_pinv @ J
         x = np.asarray(robot.forward_kinematics(q) if ee_pos is None else ee_pos, dtype=float)
         null_term = alpha * (N @ de)
-        null_prec = N / null_space_std**2
+        if null_space_std is None:
+            null_prec = N @ prec_theta @ N
+        else:
+            null_prec = N / null_space_std**2
         for frame in frames:
             dx = np.asarray(frame.position, dtype=float) - x  # line 14 (o + x_hat already summed)
             means.append(J_pinv @ dx + null_term)  # line 16
             cov = np.asarray(frame.covariance, dtype=float)
-            cov = cov + MIN_VARIANCE * np.eye(3)
+            cov = cov + MIN_VARIANCE * np.eye(cov.shape[0])
             # line 17 in information form: pinv(J^+ Sigma_x J^+^T) = J^T Sigma_x^-1 J, regularised
             precisions.append(J.T @ np.linalg.solve(cov, J) + null_prec)
     return fuse_information(means, precisions, ridge)  # line 19
@@ -244,7 +258,7 @@ def reproduce(
     *,
     q0: NDArray[np.float64] | None = None,
     alpha: float = DEFAULT_ALPHA,
-    null_space_std: float = DEFAULT_NULL_SPACE_STD,
+    null_space_std: float | None = None,
     damping: float = DEFAULT_DAMPING,
     ridge: float = DEFAULT_RIDGE,
     clip_to_limits: bool = True,

@@ -73,7 +73,7 @@ def test_fit_as_classmethod_and_instance(demos, policy):
     assert isinstance(p, GPDemonstrationPolicy)
     assert p.frame_names_ == ["joint", "cup", "machine"]
     assert policy.mean_["joint"].shape == (200, 8)
-    assert policy.std_["cup"].shape == (200, 3)
+    assert policy.std_["cup"].shape == (200, 6)  # grasp point + a point on the approach axis
     assert policy.duration_ == pytest.approx(N_STEPS * policy.control_dt_, rel=1e-3)
 
 

@@ -161,7 +161,7 @@ def test_null_space_term_pulls_towards_joint_estimate(arm):
     q_hat = q + np.array([0.0, 0.3, -0.3, 0.2])
     frame = FrameEstimate(position=target, covariance=np.eye(3) * 1e-8)
     var = np.full(4, 1e6)  # an uninformative joint estimate: only the null-space term can pull
-    d0, _ = reproduction_step(arm, q, q_hat, var, [frame], alpha=0.0)
+    d0, _ = reproduction_step(arm, q, q_hat, var, [frame], alpha=0.0, null_space_std=0.01)
     d1, _ = reproduction_step(arm, q, q_hat, var, [frame], alpha=0.5, null_space_std=0.01)
     assert np.linalg.norm(d0) < 1e-6
     J = arm.position_jacobian(q)
