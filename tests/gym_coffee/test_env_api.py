@@ -50,12 +50,13 @@ def rollout_digest(env_id: str, seed: int, n_steps: int = N_STEPS) -> str:
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
-def test_gymnasium_check_env_without_warnings(env_id):
+@pytest.mark.parametrize("kwargs", [{}, {"reward_type": "sparse"}], ids=["dense", "sparse"])
+def test_gymnasium_check_env_without_warnings(env_id, kwargs):
     from gymnasium.utils.env_checker import check_env
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        env = make(env_id, render_mode="rgb_array")
+        env = make(env_id, render_mode="rgb_array", **kwargs)
         try:
             check_env(env.unwrapped)
         finally:
@@ -159,8 +160,16 @@ def test_pickle_round_trip(env_id):
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
-def test_async_vector_env(env_id):
-    envs = gym.vector.AsyncVectorEnv([lambda: gym.make(env_id)] * 2)
+@pytest.mark.parametrize("context", [None, "spawn"])
+def test_async_vector_env(env_id, context):
+    def make_env() -> gym.Env:
+        # With "spawn"/"forkserver" (Python 3.14's default on Linux) the worker is a fresh
+        # interpreter: the env function must import gym_coffee itself to register the ids.
+        import gym_coffee  # noqa: F401
+
+        return gym.make(env_id)
+
+    envs = gym.vector.AsyncVectorEnv([make_env] * 2, context=context)
     try:
         obs, info = envs.reset(seed=[1, 2])
         assert obs.shape == (2, *envs.single_observation_space.shape)
@@ -174,7 +183,7 @@ def test_async_vector_env(env_id):
     finally:
         envs.close()
     # Same seeds in a fresh vector env give the same first observations.
-    envs = gym.vector.AsyncVectorEnv([lambda: gym.make(env_id)] * 2)
+    envs = gym.vector.AsyncVectorEnv([make_env] * 2, context=context)
     try:
         again, _ = envs.reset(seed=[1, 2])
     finally:
