@@ -365,6 +365,7 @@ class DemonstrationSet(Sequence[Demonstration]):
 
         Raises:
             FileExistsError: ``path`` exists and ``overwrite`` is false.
+            FileNotFoundError: the folder of ``path`` does not exist.
             DemonstrationFormatError: the set is empty.
             TypeError: ``metadata`` is not JSON-serialisable.
         """
@@ -375,6 +376,8 @@ class DemonstrationSet(Sequence[Demonstration]):
             )
         arrays = self.to_arrays()  # fails before anything touches the disk
         folder = path.parent if str(path.parent) else Path(".")
+        if not folder.is_dir():
+            raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
         try:
             with os.fdopen(fd, "wb") as fh:

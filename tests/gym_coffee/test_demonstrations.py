@@ -144,6 +144,11 @@ def test_unserialisable_metadata_fails_before_touching_disk(demos, tmp_path):
     assert os.listdir(tmp_path) == []
 
 
+def test_missing_folder(demos, tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        demos.save(tmp_path / "nope" / "d.npz")
+
+
 def test_empty_set_cannot_be_saved(tmp_path):
     with pytest.raises(DemonstrationFormatError, match="empty"):
         DemonstrationSet([]).save(tmp_path / "d.npz")
