@@ -160,7 +160,9 @@ def rollout_trace(policy: Any, seed: int, *, env_id: str = "gym_coffee/CoffeeTas
             log["joint_pos"].append(np.asarray(obs_part(obs, "joint_pos"), dtype=float))
             log["joint_std"].append(dist.joint_std[0])
             for n in targets:
-                m = np.array([np.interp(s, policy.phase_grid_, col) for col in policy.mean_[n].T])
+                m = np.array(  # the grasp point (the first 3 of the frame's task vector)
+                    [np.interp(s, policy.phase_grid_, col) for col in policy.mean_[n][:, :3].T]
+                )
                 o, R = frames[n]
                 targets[n].append(frame_estimate(o, R, m, np.ones(3)).position)
             obs, _r, terminated, truncated, info = env.step(dist.action[0])
@@ -238,7 +240,7 @@ def _pick_dimension(encoder: Any) -> tuple[str, int]:
     for name in encoder.frame_names_:
         if name == JOINT_FRAME and len(encoder.frame_names_) > 1:
             continue
-        spread = encoder.data_[name].std(axis=0)  # (T, d)
+        spread = encoder.data_[name][:, :, :3].std(axis=0)  # (T, 3): the grasp point
         ratio = (spread.max(axis=0) + 1e-6) / (np.median(spread, axis=0) + 1e-6)
         j = int(np.argmax(ratio))
         if ratio[j] > best_ratio:
