@@ -211,3 +211,21 @@ def test_fast_sorted_1d_assignment_equals_general_loop():
         c_gen, a_gen = general._assign(X)
         np.testing.assert_array_equal(a_fast, a_gen)
         np.testing.assert_allclose(c_fast, c_gen, rtol=1e-12)
+
+
+def test_hyperparameter_modes():
+    X, y = demos(1200)
+    X_test, y_test = held_out()
+    common = {"threshold": 0.5, "max_points": 60, "local_model": "exact", "random_state": 0}
+    fixed = LocalGP(kernel(), hyperparameters="fixed", **common).fit(X, y)
+    assert all(np.allclose(m.kernel_.theta, kernel().theta) for m in fixed.models_)
+    local = LocalGP(kernel(), hyperparameters="local", **common).fit(X, y)
+    thetas = np.array([m.kernel_.theta for m in local.models_])
+    assert np.ptp(thetas, axis=0).max() > 0.1  # each model has its own
+    full = LocalGP(kernel(), **common).fit(X, y)  # shared, every model complete
+    thin = LocalGP(kernel(), shared_points=15, **common).fit(X, y)  # shared, thinned data
+    shared = np.array([m.kernel_.theta for m in full.models_])
+    assert np.ptp(shared, axis=0).max() == 0.0  # one set for all
+    np.testing.assert_allclose(thin.models_[0].kernel_.theta, shared[0], atol=0.7)
+    for model in (full, thin):
+        assert 0.9 <= coverage(model, X_test, y_test) <= 0.99
