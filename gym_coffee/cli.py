@@ -113,7 +113,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     if failed:
         print(f"the teacher failed on seeds {failed}; they were skipped")
     if args.video is not None:
-        path = record_video(args.env_id, demos[0], args.video)
+        path = record_video(args.env_id, demos[0], args.video, progress=not args.no_progress)
         print(f"wrote {path}")
     return 0
 
@@ -133,6 +133,7 @@ def record_video(
     stride: int = VIDEO_FRAME_STRIDE,
     max_frames: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
+    progress: bool = False,
 ) -> Path:
     """Replay ``demo``'s actions in a fresh ``rgb_array`` env and write every ``stride``-th frame.
 
@@ -146,12 +147,19 @@ def record_video(
     if max_frames is None:
         max_frames = VIDEO_MAX_FRAMES
     env = gym.make(env_id, render_mode="rgb_array", **(env_kwargs or {}))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=demo.n_steps - 1, desc=f"rendering {path.name}", unit="step")
     try:
         env.reset(seed=demo.seed)
         frames = [env.render()]
         for t, action in enumerate(demo.actions[:-1], start=1):  # the last one was not applied
             if max_frames is not None and len(frames) >= max_frames:
                 break
+            if bar is not None:
+                bar.update(1)
             _, _, terminated, truncated, _ = env.step(action)
             if t % stride == 0 or terminated or truncated:
                 frames.append(env.render())
@@ -160,6 +168,8 @@ def record_video(
         fps = float(env.metadata.get("render_fps") or 25) / stride
     finally:
         env.close()
+        if bar is not None:
+            bar.close()
     return write_video(path, frames, fps=fps)
 
 
