@@ -94,3 +94,30 @@ def test_record_one_demo_with_video_then_force(tmp_path, capsys, monkeypatch):
     # --force replaces the file; the same seed gives the same demonstration (deterministic).
     assert main([*args, "--force"]) == 0
     assert DemonstrationSet.load(out) == demos
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".gif"])
+def test_write_video_formats(tmp_path, suffix):
+    """The video helper behind --video: odd frame sizes, both formats, read back."""
+    from gym_coffee.video import write_video
+
+    frames = [np.full((31, 45, 3), 8 * i, dtype=np.uint8) for i in range(12)]
+    path = write_video(tmp_path / f"v{suffix}", frames, fps=12)
+    video = iio.imread(path, index=None)
+    assert video.shape[0] == 12 and video.shape[-1] == 3
+    assert video.shape[1:3] in ((31, 45), (32, 46))  # H.264 pads to even sizes
+    assert abs(float(video[5].mean()) - 40) < 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"v{suffix}"]  # no temp file left
+    with pytest.raises(FileExistsError):
+        write_video(path, frames, overwrite=False)
+
+
+def test_write_video_errors(tmp_path):
+    from gym_coffee.video import write_video
+
+    with pytest.raises(ValueError, match=r"\.mp4"):
+        write_video(tmp_path / "v.avi", [np.zeros((4, 4, 3), np.uint8)])
+    with pytest.raises(ValueError, match="no frames"):
+        write_video(tmp_path / "v.gif", [])
+    with pytest.raises(ValueError, match="frame 1"):
+        write_video(tmp_path / "v.gif", [np.zeros((4, 4, 3)), np.zeros((4, 5, 3))])
