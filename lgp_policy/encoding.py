@@ -173,25 +173,30 @@ class DemonstrationEncoder:
         self.random_state = random_state
 
     # ----------------------------------------------------------------- models
-    def _make_model(self) -> Any:
-        if self.model == "empirical":
-            return _Empirical()
+    def make_kernel(self) -> Any:
+        """The squared-exponential + white-noise kernel (Eq. 10) every GP starts from, with
+        bounds that rule out the degenerate optima seen on demonstrations (see below)."""
         from lgp_policy.kernels import SquaredExponential, WhiteNoise
 
         # A length scale below the grid spacing lets the likelihood "explain" a sharp step by
         # interpolating the grid points and reverting to the mean in between (measured on a
-        # gripper command): keep it above 1.5 grid steps.
+        # gripper command): keep it above 1.5 grid steps. The opposite degenerate optimum, "no
+        # signal, all noise" (variance at its lower bound, length scale > the whole phase
+        # range), flattens the heteroscedastic noise model too; a trajectory always has signal,
+        # so bound the variance (normalised outputs) and keep the length scale below half the
+        # phase range.
         min_ls = 1.5 / (self.n_steps - 1)
-        # The opposite degenerate optimum, "no signal, all noise" (variance at its lower bound,
-        # length scale > the whole phase range), flattens the heteroscedastic noise model too;
-        # a trajectory always has signal, so bound the variance (normalised outputs) and keep
-        # the length scale below half the phase range.
-        kernel = SquaredExponential(
+        return SquaredExponential(
             1.0,
             max(self.length_scale, min_ls),
             variance_bounds=(1e-2, 1e2),
             length_scale_bounds=(min_ls, 0.5),
         ) + WhiteNoise(self.noise_level)
+
+    def _make_model(self) -> Any:
+        if self.model == "empirical":
+            return _Empirical()
+        kernel = self.make_kernel()
         kwargs = dict(self.model_kwargs or {})
         if self.model == "exact":
             from lgp_policy.gp import GaussianProcess

@@ -25,6 +25,12 @@ __all__ = [
 
 AXES = ("x", "y", "z")
 FRAME_COLORS = {"cup": "tab:blue", "machine": "tab:green", JOINT_FRAME: "tab:gray"}
+MODEL_LABELS = {
+    "local": "local heteroscedastic",
+    "heteroscedastic": "global heteroscedastic",
+    "exact": "standard",
+    "empirical": "empirical",
+}
 STAGE_LABELS = {"cup_grasped": "grasp", "cup_placed": "place", "button_pressed": "press"}
 
 
@@ -256,58 +262,72 @@ def _xy(encoder: Any, name: str, j: int) -> tuple[NDArray[np.float64], NDArray[n
 def plot_heteroscedastic(
     encoder: Any, path: str | Path, *, frame: str | None = None, dim: int | None = None
 ) -> Path:
-    """Fig. 1: a standard GP (a) and the heteroscedastic GP (b) on one dimension of the
-    demonstrations (+-2 std), and the heteroscedastic noise model r(x) (c)."""
+    """Fig. 1 on one dimension of the demonstrations: (a) a standard (homoscedastic) GP, (b) the
+    encoder's own model (the local heteroscedastic GP the policy uses; +-2 std includes the
+    input-dependent noise), (c) the noise models against the demonstrations' spread."""
     from lgp_policy.gp import GaussianProcess
     from lgp_policy.heteroscedastic import HeteroscedasticGP
-    from lgp_policy.kernels import SquaredExponential, WhiteNoise
 
     plt = _plt()
     if frame is None or dim is None:
         frame, dim = _pick_dimension(encoder)
     X, y = _xy(encoder, frame, dim)
     xs = np.linspace(0.0, 1.0, 300)[:, None]
-    ls = getattr(encoder, "length_scale", 0.1)
-    kernel = SquaredExponential(1.0, ls) + WhiteNoise(0.1)
-    gp = GaussianProcess(kernel, random_state=0).fit(X, y)
-    hgp = HeteroscedasticGP(kernel, random_state=0).fit(X, y)
+    gp = GaussianProcess(encoder.make_kernel(), random_state=0).fit(X, y)
+    used = encoder.models_[frame][dim]
+    hgp = HeteroscedasticGP(encoder.make_kernel(), random_state=0).fit(X, y)
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     label = f"{frame} {AXES[dim] if frame != JOINT_FRAME else f'dim {dim}'}"
+    demos = encoder.data_[frame][:, :, dim]
     for ax, model, title in (
         (axes[0], gp, "(a) standard GP"),
-        (axes[1], hgp, "(b) heteroscedastic GP"),
+        (axes[1], used, f"(b) {MODEL_LABELS.get(encoder.model, encoder.model)} GP (used)"),
     ):
         m, sd = model.predict(xs, return_std=True)
-        for k in range(encoder.data_[frame].shape[0]):
-            ax.plot(encoder.phase_, encoder.data_[frame][k, :, dim], color="k", lw=0.7)
+        for k in range(demos.shape[0]):
+            ax.plot(encoder.phase_, demos[k], color="k", lw=0.7)
         ax.fill_between(xs[:, 0], m - 2 * sd, m + 2 * sd, color="tab:blue", alpha=0.25)
         ax.plot(xs[:, 0], m, color="tab:blue", lw=2)
         ax.set_title(f"{title}: {label}", fontsize=10)
         ax.set_xlabel("normalised time")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("m")
-    r = hgp.noise_variance(xs)
-    axes[2].plot(
-        xs[:, 0], np.sqrt(r), color="tab:orange", lw=2, label="sqrt r(x) (heteroscedastic)"
+    ax = axes[2]
+    if hasattr(used, "noise_variance"):
+        ax.plot(
+            xs[:, 0],
+            np.sqrt(used.noise_variance(xs)),
+            color="tab:orange",
+            lw=2,
+            label=f"sqrt r(x), {MODEL_LABELS.get(encoder.model, encoder.model)} (used)",
+        )
+    ax.plot(
+        xs[:, 0],
+        np.sqrt(hgp.noise_variance(xs)),
+        color="tab:purple",
+        lw=1.2,
+        ls="-.",
+        label="sqrt r(x), one global heteroscedastic GP",
     )
-    axes[2].plot(
+    ax.plot(
         xs[:, 0],
         np.sqrt(gp.noise_variance(xs)),
         color="tab:gray",
         ls="--",
-        label="noise std (standard GP)",
+        label="noise std, standard GP",
     )
-    axes[2].plot(
+    ddof = 1 if demos.shape[0] > 1 else 0
+    ax.plot(
         encoder.phase_,
-        encoder.data_[frame][:, :, dim].std(axis=0),
+        demos.std(axis=0, ddof=ddof),
         color="k",
         lw=0.8,
         label="spread of the demonstrations",
     )
-    axes[2].set_title("(c) noise model", fontsize=10)
-    axes[2].set_xlabel("normalised time")
-    axes[2].legend(fontsize=8)
-    axes[2].grid(alpha=0.3)
+    ax.set_title("(c) noise models", fontsize=10)
+    ax.set_xlabel("normalised time")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
     fig.suptitle("Standard vs heteroscedastic GP on the demonstrations (cf. Fig. 1)", fontsize=10)
     fig.tight_layout()
     path = Path(path)
@@ -333,11 +353,8 @@ def plot_clustering(
         frame, dim = _pick_dimension(encoder)
     model = encoder.models_[frame][dim]
     if not hasattr(model, "centers_"):
-        from lgp_policy.kernels import SquaredExponential, WhiteNoise
-
         X, y = _xy(encoder, frame, dim)
-        kernel = SquaredExponential(1.0, getattr(encoder, "length_scale", 0.1)) + WhiteNoise(0.1)
-        model = LocalGP(kernel, threshold=threshold or getattr(encoder, "threshold", 0.5)).fit(X, y)
+        model = LocalGP(encoder.make_kernel(), threshold=threshold or encoder.threshold).fit(X, y)
     X = np.asarray(model.X_train_ if hasattr(model, "X_train_") else _xy(encoder, frame, dim)[0])
     y = np.asarray(model.y_train_ if hasattr(model, "y_train_") else _xy(encoder, frame, dim)[1])
     X = X.reshape(len(X), -1)[:, 0]
