@@ -46,6 +46,7 @@ from lgp_policy.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
+    MIN_VARIANCE,
     FrameEstimate,
     limit_step,
     reproduction_step,
@@ -377,17 +378,19 @@ class GPDemonstrationPolicy:
             if origin is None:  # footnote 2: object not detected
                 continue
             mcol, vcol = self._cols[name]
-            m, v = row[mcol], row[vcol]
+            m, v = row[mcol], np.maximum(row[vcol], MIN_VARIANCE)
             if m.shape[0] == 3:
-                estimates.append(FrameEstimate(origin + R @ m, (R * v) @ R.T))
+                estimates.append(FrameEstimate(origin + R @ m, (R * v) @ R.T, (R / v) @ R.T))
                 continue
             if x is None:
                 x, J = hand_points(self.robot_, q, self.approach_offset)
             pos = (origin + m.reshape(-1, 3) @ R.T).reshape(-1)
             cov = np.zeros((m.shape[0], m.shape[0]))
-            for b in range(0, m.shape[0], 3):
+            prec = np.zeros_like(cov)
+            for b in range(0, m.shape[0], 3):  # block diagonal: R diag(v) R^T per point
                 cov[b : b + 3, b : b + 3] = (R * v[b : b + 3]) @ R.T
-            estimates.append(FrameEstimate(pos, cov))
+                prec[b : b + 3, b : b + 3] = (R / v[b : b + 3]) @ R.T
+            estimates.append(FrameEstimate(pos, cov, prec))
         dq, cov = reproduction_step(
             self.robot_,
             q,
@@ -650,7 +653,11 @@ def hand_points(
     J6 = np.asarray(robot.jacobian(q), dtype=float)
     z = np.asarray(R, dtype=float)[:, 2]
     Jp, Jw = J6[:3], J6[3:]
-    J2 = Jp - offset * np.cross(Jw.T, z).T
+    cross = np.empty_like(Jw)  # omega_i x z for every column i
+    cross[0] = Jw[1] * z[2] - Jw[2] * z[1]
+    cross[1] = Jw[2] * z[0] - Jw[0] * z[2]
+    cross[2] = Jw[0] * z[1] - Jw[1] * z[0]
+    J2 = Jp - offset * cross
     return np.concatenate([p, p - offset * z]), np.vstack([Jp, J2])
 
 

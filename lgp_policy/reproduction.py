@@ -99,6 +99,8 @@ class FrameEstimate:
 
     position: NDArray[np.float64]
     covariance: NDArray[np.float64]
+    precision: NDArray[np.float64] | None = None
+    """Optional ``covariance^-1`` when the caller has it in closed form (saves a solve)."""
 
 
 @dataclass(frozen=True)
@@ -152,15 +154,14 @@ def fuse_information(
     Lam[np.diag_indices(k)] += ridge
     Lam = 0.5 * (Lam + Lam.T)
     try:
-        L = np.linalg.cholesky(Lam)
+        np.linalg.cholesky(Lam)  # a cheap check that the product is a proper Gaussian
     except np.linalg.LinAlgError as exc:  # pragma: no cover - guarded by the ridge
         raise np.linalg.LinAlgError(
             "The fused precision of Algorithm 3 is not positive definite. Increase 'ridge' or the "
             "variance floor of the joint-space estimate."
         ) from exc
-    mean = np.linalg.solve(L.T, np.linalg.solve(L, eta))
-    Linv = np.linalg.solve(L, np.eye(k))
-    return mean, Linv.T @ Linv
+    cov = np.linalg.inv(Lam)  # k x k (7 x 7): one call, well conditioned thanks to the ridge
+    return cov @ eta, cov
 
 
 def reproduction_step(
@@ -221,10 +222,14 @@ def reproduction_step(
         for frame in frames:
             dx = np.asarray(frame.position, dtype=float) - x  # line 14 (o + x_hat already summed)
             means.append(J_pinv @ dx + null_term)  # line 16
-            cov = np.asarray(frame.covariance, dtype=float)
-            cov = cov + MIN_VARIANCE * np.eye(cov.shape[0])
             # line 17 in information form: pinv(J^+ Sigma_x J^+^T) = J^T Sigma_x^-1 J, regularised
-            precisions.append(J.T @ np.linalg.solve(cov, J) + null_prec)
+            if frame.precision is not None:
+                P = np.asarray(frame.precision, dtype=float)
+                precisions.append(J.T @ P @ J + null_prec)
+            else:
+                cov = np.asarray(frame.covariance, dtype=float)
+                cov = cov + MIN_VARIANCE * np.eye(cov.shape[0])
+                precisions.append(J.T @ np.linalg.solve(cov, J) + null_prec)
     return fuse_information(means, precisions, ridge)  # line 19
 
 
