@@ -64,6 +64,22 @@ def _fit_base(out: Path, n_demos: int) -> Path:
     return path
 
 
+def _cached_eval(out: Path, base_path: Path, variant, variant_range, seeds, base) -> dict:
+    """The base policy's evaluation, reused from ``out/base_eval.json`` when the same policy file,
+    variant and layouts were evaluated before (so ``--seeds 1 2`` later does not redo it)."""
+    from lgp_policy.residual import _sha256, evaluate_stages
+    from lgp_policy.residual_cli import build_env_fn
+
+    key = f"{_sha256(Path(base_path))}|{variant}|{list(variant_range)}|{seeds[0]}|{len(seeds)}"
+    cache_path = out / "base_eval.json"
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    if key not in cache:
+        env_fn = build_env_fn(variant, offset_range=tuple(variant_range))
+        cache[key] = evaluate_stages(base, env_fn, seeds)
+        cache_path.write_text(json.dumps(cache, indent=2))
+    return cache[key]
+
+
 def _table(rows: dict[str, dict[str, float]], columns: list[str], n: int) -> str:
     stages = ["cup_grasped", "cup_placed", "cup_placed_at_end", "button_pressed", "is_success"]
     head = f"{'stage':<19}" + "".join(f"{c:>12}" for c in columns)
@@ -83,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timesteps", type=int, default=None, help="env-step budget per seed")
     ap.add_argument("--episodes", type=int, default=None, help="held-out layouts (default 100)")
     ap.add_argument("--algo", choices=("sac", "td3", "ppo"), default="sac")
-    ap.add_argument("--scale", type=float, default=0.2)
+    ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--gate-start", type=float, default=None)
     ap.add_argument("--variant", choices=("auto", "none", "machine-offset"), default="auto")
     ap.add_argument("--variant-range", type=float, nargs=2, default=(0.002, 0.010))
@@ -118,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"base policy {base_path}; gate {gate.to_config()}")
 
     t0 = time.perf_counter()
-    plain = evaluate_stages(base, build_env_fn("none"), test_seeds)
+    plain = _cached_eval(args.out, base_path, "none", args.variant_range, test_seeds, base)
     print(f"base on the plain env ({time.perf_counter() - t0:.0f} s):")
     print(_table({"base": plain["rates"]}, ["base"], n_eval))
 
@@ -127,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         variant = "machine-offset" if plain["rates"]["button_pressed"] >= 0.95 else "none"
     env_fn = build_env_fn(variant, offset_range=tuple(args.variant_range))
     if variant != "none":
-        base_rates = evaluate_stages(base, env_fn, test_seeds)["rates"]
+        base_rates = _cached_eval(
+            args.out, base_path, variant, args.variant_range, test_seeds, base
+        )["rates"]
         print(
             f"\nbase presses on {plain['rates']['button_pressed']:.0%} of the plain layouts: "
             f"harder variant '{variant}' (observed machine position shifted "

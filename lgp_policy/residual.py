@@ -390,7 +390,7 @@ class ResidualWrapper(gym.Wrapper):
         env: a gymnasium env with flat ``Box`` observation and action spaces.
         base: any ``PolicyPredictor`` for ``env``; asked with ``deterministic=True``; its
             recurrent ``state`` is carried and reset with ``episode_start``.
-        scale: the residual's largest contribution, in action units (default 0.2).
+        scale: the residual's largest contribution, in action units (default 0.5).
         gate: callable ``gate(observation (n, obs_dim), base) -> (n,)`` in ``[0, 1]``
             (default :class:`PhaseGate`).
         residual_dims: action entries the residual may change (default: all).
@@ -416,7 +416,7 @@ class ResidualWrapper(gym.Wrapper):
         env: gym.Env,
         base: Any,
         *,
-        scale: float = 0.2,
+        scale: float = 0.5,
         gate: Callable[..., NDArray[Any]] | None = None,
         residual_dims: Sequence[int] | None = None,
         include_gate_obs: bool = True,
@@ -989,7 +989,7 @@ class ResidualPolicy:
         base: Any,
         model: Any,
         *,
-        scale: float = 0.2,
+        scale: float = 0.5,
         gate: Any = None,
         residual_dims: Sequence[int] | None = None,
         include_gate_obs: bool = True,
@@ -1480,7 +1480,7 @@ def finetune(
     algo: str = "sac",
     total_env_steps: int = 100_000,
     seed: int = 0,
-    scale: float = 0.2,
+    scale: float = 0.5,
     gate: Any = None,
     residual_dims: Sequence[int] | None = None,
     include_gate_obs: bool = True,

@@ -56,8 +56,8 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
     p.add_argument(
         "--scale",
         type=float,
-        default=0.2,
-        help="largest residual, in action units; 1 action unit = 0.05 rad per step (default 0.2)",
+        default=0.5,
+        help="largest residual, in action units; 1 action unit = 0.05 rad per step (default 0.5)",
     )
     p.add_argument(
         "--gate-start",
