@@ -209,6 +209,7 @@ def run_pipeline(
     timings["fit_s"] = time.perf_counter() - t
     print(f"      fitted in {policy.fit_time_:.1f} s -> {policy_path}", flush=True)
     report = policy.constraints_
+    (out / "constraints.json").write_text(json.dumps(report, indent=2))
     for iv in report["intervals"]:
         print(f"      tight: {iv['label']}")
     for c in report["checks"]:
@@ -225,6 +226,7 @@ def run_pipeline(
 
     files: dict[str, str] = {
         "policy": str(policy_path),
+        "constraints": str(out / "constraints.json"),
         "demonstrations": str(out / "demonstrations.npz"),
     }
     if plots:
