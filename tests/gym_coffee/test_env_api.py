@@ -272,3 +272,27 @@ def test_make_close_cycles_do_not_leak(env_id):
     assert fds1 - fds0 <= 2, f"open file descriptors grew from {fds0} to {fds1}"
     # 200 cycles; a leak of one body or client per cycle would be far above this.
     assert rss1 - rss0 < 16 * 1024, f"RSS grew by {(rss1 - rss0) / 1024:.1f} MiB in 200 cycles"
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs Linux /proc")
+@pytest.mark.xfail(
+    reason="known: ~14 KiB per reset, scene URDFs reloaded with URDF_ENABLE_CACHED_GRAPHICS_SHAPES "
+    "(docs/notes-env-issues.md, entry 7)",
+    strict=False,
+)
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_resets_in_one_env_do_not_grow_memory(env_id):
+    """RL runs reset one env many thousand times: memory must stay flat."""
+    env = make(env_id)
+    try:
+        for i in range(30):  # warm-up
+            env.reset(seed=i)
+        gc.collect()
+        rss0 = _rss_kib()
+        for i in range(500):
+            env.reset(seed=i)
+        gc.collect()
+        grown = _rss_kib() - rss0
+    finally:
+        env.close()
+    assert grown < 2 * 1024, f"RSS grew by {grown / 1024:.1f} MiB over 500 resets of one env"
