@@ -8,7 +8,8 @@
 2. Success versus the number of demonstrations (1, 2, 4, 8).
 3. Ablations, side by side with the main policy: exact GP instead of LocalGP (one global
    heteroscedastic GP, and one homoscedastic GP), the product vs the calibrated ("nearest")
-   combination of the local models, joint frame only vs joint + object frames.
+   combination of the local models, joint frame only vs joint + object frames, and object frames
+   with the grasp point only (the paper's p = 3) vs grasp point + approach axis (p = 6, default).
 
 Each row: fit time, per-stage success with 95% Wilson intervals. ``--quick`` runs 20 episodes
 and skips the 8-demonstration row. BLAS is pinned to one thread.
@@ -129,6 +130,7 @@ def main() -> None:
         ("exact homoscedastic GP", {"model": "exact"}),
         ("empirical mean/std (no GP)", {"model": "empirical"}),
         ("joint frame only", {"frames": ()}),
+        ("object frames position only (p=3)", {"approach_offset": None}),
         ("joint + object frames (default)", {}),
     ]
     for name, kw in variants:

@@ -1,7 +1,7 @@
 """``GPDemonstrationPolicy``: the paper's LfD controller as a stable-baselines3 ``PolicyPredictor``.
 
 ``fit(demos)`` encodes the demonstrations (:class:`~lgp_policy.encoding.DemonstrationEncoder`:
-joint space plus the end effector relative to the cup and to the machine) and then evaluates every
+joint space plus the hand relative to the cup and to the machine) and then evaluates every
 GP once on a dense phase grid. The paper notes that "the prediction part can then be performed very
 quickly": ``predict`` only interpolates that table and runs one step of Algorithm 3
 (:func:`~lgp_policy.reproduction.reproduction_step`) from the *measured* joint positions, so the
@@ -12,7 +12,11 @@ Per step, for an observation with ``time`` ``t`` (seconds since reset):
 1. phase ``s = (t + lookahead * control_dt) / duration`` (``duration`` = mean demonstration length,
    clipped to ``[0, 1]``; after the demonstrated duration the final posture is held);
 2. the joint-space estimate ``theta_hat(s)`` and, for every object in the observation, the world
-   target ``o + R x_hat(s)`` with covariance ``R diag(std^2) R^T``;
+   target ``o + R x_hat(s)`` with covariance ``R diag(std^2) R^T``. ``x`` is the task vector of
+   Algorithm 3: the grasp point and, with ``approach_offset`` (default 0.1 m), a second point
+   that far behind it on the hand's approach axis (``p = 6``), so that the object frames also
+   carry the approach direction; ``approach_offset=None`` is the paper's position-only ``p = 3``
+   (the hand's orientation then comes from the joint-space estimate alone);
 3. Algorithm 3 (information-form product) gives the joint increment, scaled down as a whole if a
    joint would move more than ``max_joint_step`` (the env's ``MAX_JOINT_STEP``);
 4. the gripper opening is the joint-space GP's gripper mean (the teacher's *commanded* opening);

@@ -33,6 +33,11 @@ def test_run_fit_evaluate(tmp_path, capsys):
         "rollout.gif",
     ):
         assert (out / name).stat().st_size > 0, name
+    # the constraint report agrees with the demonstrated stages: cup tight at the grasp,
+    # machine tight at the place and the press
+    checks = {c["stage"]: c for c in results["constraints"]["checks"]}
+    assert set(checks) == {"cup_grasped", "cup_placed", "button_pressed"}
+    assert all(c["tight"] for c in checks.values()), checks
     policy = GPDemonstrationPolicy.load(out / "policy.npz")
     assert policy.constraints_ == results["constraints"]
 
