@@ -564,3 +564,42 @@ def test_press_phase_start_from_the_demonstrations_stage_phases():
     assert _press_phase_start(object()) == pytest.approx(0.8)
     gate = make_gate(Reported())
     assert gate.source == "policy" and gate.start == pytest.approx(0.75)
+
+
+def test_teacher_base_is_bound_to_the_env_it_acts_in():
+    from gym_coffee.teacher import ScriptedTeacher
+    from lgp_policy.residual import TeacherBase
+
+    env = make_coffee()
+    teacher = ScriptedTeacher(env, rng=0, variation=0.0)
+    obs, _ = env.reset(seed=4)
+    reference = [obs]
+    for _ in range(60):
+        obs, *_ = env.step(teacher.act(obs))
+        reference.append(obs)
+    wrapped = ResidualWrapper(make_coffee(), TeacherBase(), gate=coffee_gate(0.0))
+    obs, _ = wrapped.reset(seed=4)
+    got = [obs[: reference[0].size]]
+    for _ in range(60):
+        obs, *_ = wrapped.step(np.zeros(8, np.float32))
+        got.append(obs[: reference[0].size])
+    np.testing.assert_array_equal(np.array(got), np.array(reference))
+    with pytest.raises(RuntimeError, match="bind"):
+        TeacherBase().predict(obs)
+
+
+def test_actuation_noise_wrapper_starts_on_an_info_flag():
+    from lgp_policy.residual import ActuationNoiseWrapper
+
+    rec = Recorder(make_pendulum())
+    env = ActuationNoiseWrapper(rec, bias=0.25, start_on_info="go")
+    env.reset(seed=0)
+    env.step(np.zeros(1, np.float32))
+    assert rec.actions[-1][0] == 0.0  # "go" never appears in Pendulum's info: never active
+    env = ActuationNoiseWrapper(rec, bias=0.25, noise_std=0.1)
+    env.reset(seed=0)
+    env.step(np.zeros(1, np.float32))
+    first = rec.actions[-1][0]
+    env.reset(seed=0)
+    env.step(np.zeros(1, np.float32))
+    assert rec.actions[-1][0] == first != 0.0  # seeded, and active from the start
