@@ -216,8 +216,8 @@ def main(argv: list[str] | None = None) -> int:
         r = results["seeds"][str(seed)]
         press = r["rates"]["button_pressed"]
         loss = {
-            k: r["rates"][k] - base_rates[k]
-            for k in ("cup_grasped", "cup_placed")
+            k: round(r["rates"][k] - base_rates[k], 3)
+            for k in ("cup_grasped", "cup_placed", "cup_placed_at_end")
             if r["rates"][k] < base_rates[k]
         }
         met = press >= 0.95 and not loss and r["env_steps"] <= 100_000
