@@ -9,7 +9,8 @@
 3. Ablations, side by side with the main policy: exact GP instead of LocalGP (one global
    heteroscedastic GP, and one homoscedastic GP), the product vs the calibrated ("nearest")
    combination of the local models, joint frame only vs joint + object frames, and object frames
-   with the grasp point only (the paper's p = 3) vs grasp point + approach axis (p = 6, default).
+   with the grasp point only (the paper's p = 3) vs grasp point + approach axis (p = 6, default),
+   and plain normalised time vs alignment on the gripper events (default).
 
 Each row: fit time, per-stage success with 95% Wilson intervals. ``--quick`` runs 20 episodes
 and skips the 8-demonstration row. BLAS is pinned to one thread.
@@ -131,6 +132,7 @@ def main() -> None:
         ("empirical mean/std (no GP)", {"model": "empirical"}),
         ("joint frame only", {"frames": ()}),
         ("object frames position only (p=3)", {"approach_offset": None}),
+        ("no time alignment (plain t/T)", {"align": None}),
         ("joint + object frames (default)", {}),
     ]
     for name, kw in variants:

@@ -31,6 +31,7 @@ __all__ = [
     "MODELS",
     "DemonstrationEncoder",
     "constraint_intervals",
+    "phase_of",
     "resample",
 ]
 
@@ -44,13 +45,47 @@ MIN_STD = 1e-4
 """Floor on predicted standard deviations (units of the dimension: rad, m)."""
 
 
-def resample(time: ArrayLike, values: ArrayLike, n_steps: int) -> NDArray[np.float64]:
+def phase_of(
+    time: ArrayLike,
+    landmarks: ArrayLike | None = None,
+    landmark_phases: ArrayLike | None = None,
+) -> NDArray[np.float64]:
+    """Normalised time of each time stamp of one demonstration.
+
+    Without landmarks ``s = (t - t_0) / (t_end - t_0)``. With landmarks (times of events every
+    demonstration has, in the same order, e.g. the gripper closing and opening), the phase is
+    piecewise linear in ``t`` and puts landmark ``j`` at ``landmark_phases[j]`` (typically the
+    mean over the demonstrations of its normalised time): a landmark-based time alignment.
+    """
+    t = np.asarray(time, dtype=float).reshape(-1)
+    s = (t - t[0]) / (t[-1] - t[0])
+    if landmarks is None or len(np.atleast_1d(landmarks)) == 0:
+        return s
+    lx = (np.asarray(landmarks, dtype=float).reshape(-1) - t[0]) / (t[-1] - t[0])
+    ly = np.asarray(landmark_phases, dtype=float).reshape(-1)
+    if lx.shape != ly.shape:
+        raise ValueError(f"{lx.size} landmarks but {ly.size} landmark phases")
+    kx = np.concatenate([[0.0], lx, [1.0]])
+    ky = np.concatenate([[0.0], ly, [1.0]])
+    if np.any(np.diff(kx) <= 0) or np.any(np.diff(ky) <= 0):
+        raise ValueError("landmarks and their phases must be strictly increasing inside (0, 1)")
+    return np.interp(s, kx, ky)
+
+
+def resample(
+    time: ArrayLike,
+    values: ArrayLike,
+    n_steps: int,
+    landmarks: ArrayLike | None = None,
+    landmark_phases: ArrayLike | None = None,
+) -> NDArray[np.float64]:
     """Resample one demonstration to ``n_steps`` points, equally spaced in normalised time.
 
     Args:
         time: ``(n,)`` increasing time stamps.
         values: ``(n, d)`` (or ``(n,)``) samples.
         n_steps: ``T``.
+        landmarks, landmark_phases: optional time alignment, see :func:`phase_of`.
 
     Returns:
         ``(n_steps, d)`` linear interpolation at phases ``linspace(0, 1, n_steps)``.
@@ -64,7 +99,7 @@ def resample(time: ArrayLike, values: ArrayLike, n_steps: int) -> NDArray[np.flo
         raise ValueError("a demonstration needs at least 2 samples")
     if np.any(np.diff(t) <= 0):
         raise ValueError("time stamps must be strictly increasing")
-    phase = (t - t[0]) / (t[-1] - t[0])
+    phase = phase_of(t, landmarks, landmark_phases)
     grid = np.linspace(0.0, 1.0, n_steps)
     return np.stack([np.interp(grid, phase, v[:, j]) for j in range(v.shape[1])], axis=1)
 
@@ -226,6 +261,7 @@ class DemonstrationEncoder:
         ee_pos: Sequence[ArrayLike] | None = None,
         frames: Sequence[Mapping[str, tuple[ArrayLike, ArrayLike]]] | None = None,
         *,
+        landmarks: Sequence[ArrayLike] | None = None,
         progress: Callable[[str], None] | None = None,
     ) -> DemonstrationEncoder:
         """Resample and encode ``n_demos`` demonstrations.
@@ -238,6 +274,9 @@ class DemonstrationEncoder:
             frames: per demonstration, ``{object name: (origin (3,), rotation (3, 3))}``, the
                 object's *initial* pose in the world frame. Every demonstration must name the
                 same objects.
+            landmarks: optional, per demonstration, the times ``(k,)`` of ``k`` events every
+                demonstration has in the same order; the phase is then aligned on them
+                (:func:`phase_of`, each event at its mean normalised time, ``landmark_phases_``).
             progress: called with a short message before each frame is fitted.
 
         Returns:
@@ -266,21 +305,40 @@ class DemonstrationEncoder:
         self.durations_ = np.array(
             [float(np.asarray(t, dtype=float)[-1] - np.asarray(t, dtype=float)[0]) for t in times]
         )
+        marks: list[Any] = [None] * n
+        self.landmark_phases_ = np.zeros(0)
+        if landmarks is not None:
+            if len(landmarks) != n:
+                raise ValueError("landmarks need one entry per demonstration")
+            marks = [np.asarray(m, dtype=float).reshape(-1) for m in landmarks]
+            if len({m.size for m in marks}) != 1:
+                raise ValueError(
+                    f"every demonstration needs as many landmarks, got {[m.size for m in marks]}"
+                )
+            rel_marks = [
+                (m - np.asarray(t, dtype=float)[0]) / d
+                for m, t, d in zip(marks, times, self.durations_, strict=True)
+            ]
+            self.landmark_phases_ = np.mean(rel_marks, axis=0)
+        lp = self.landmark_phases_
         data = {
             JOINT_FRAME: np.stack(
-                [resample(t, q, self.n_steps) for t, q in zip(times, joint_pos, strict=True)]
+                [
+                    resample(t, q, self.n_steps, m, lp)
+                    for t, q, m in zip(times, joint_pos, marks, strict=True)
+                ]
             )
         }
         for name in names:
             rel = []
-            for t, x, f in zip(times, ee_pos, frames, strict=True):
+            for t, x, f, mk in zip(times, ee_pos, frames, marks, strict=True):
                 origin, rotation = (np.asarray(a, dtype=float) for a in f[name])
                 x = np.asarray(x, dtype=float)
                 if x.ndim != 2 or x.shape[1] % 3:
                     raise ValueError(f"ee_pos must be (n_steps, 3 * n_points), got {x.shape}")
                 pts = x.reshape(len(x), -1, 3)  # every 3-D point on the hand
                 local = ((pts - origin) @ rotation).reshape(len(x), -1)  # R^T (x - o)
-                rel.append(resample(t, local, self.n_steps))
+                rel.append(resample(t, local, self.n_steps, mk, lp))
             data[name] = np.stack(rel)
         self.data_ = data
         self.frame_names_ = [JOINT_FRAME, *names]

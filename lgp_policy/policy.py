@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report
+from lgp_policy.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
 from lgp_policy.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
@@ -144,10 +144,21 @@ def demonstration_frames(demo: Any) -> dict[str, tuple[NDArray[np.float64], NDAr
     return frames
 
 
-def stage_phases(demo: Any) -> dict[str, float | None]:
-    """Phase (``t / duration``) at which each stage flag first became true in a demonstration."""
+def gripper_events(demo: Any) -> NDArray[np.float64]:
+    """Times at which the demonstrated gripper command crosses half open (closing or opening),
+    linearly interpolated between control steps."""
     t = np.asarray(demo.time, dtype=float)
-    s = (t - t[0]) / (t[-1] - t[0])
+    g = np.asarray(demo.actions, dtype=float)[:, 7]  # in [-1, 1]; 0 = half open
+    i = np.flatnonzero(np.sign(g[:-1]) * np.sign(g[1:]) < 0)
+    w = g[i] / (g[i] - g[i + 1])
+    return t[i] + w * (t[i + 1] - t[i])
+
+
+def stage_phases(demo: Any, phase: NDArray[np.float64] | None = None) -> dict[str, float | None]:
+    """Phase at which each stage flag first became true in a demonstration (``phase``: the
+    demonstration's phase per step; default ``t / duration``)."""
+    t = np.asarray(demo.time, dtype=float)
+    s = (t - t[0]) / (t[-1] - t[0]) if phase is None else np.asarray(phase, dtype=float)
     stages = np.asarray(demo.stages, dtype=bool)
     out: dict[str, float | None] = {}
     for j, name in enumerate(STAGE_NAMES):
@@ -173,6 +184,9 @@ class GPDemonstrationPolicy:
     lookahead      control steps ahead at which the GPs are read (compensates tracking lag)
     max_joint_step largest joint change per step (rad); default the env's ``MAX_JOINT_STEP``
     std_scale      per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
+    align          ``"gripper"``: align the demonstrations in time on the gripper command's
+                   closing/opening events (landmarks, piecewise-linear phase) before
+                   encoding; ``None``: plain normalised time (the paper)
     approach_offset m; adds a second task point this far behind the grasp point along the
                    hand's approach (z) axis, so each object frame also encodes the approach
                    direction (task vector p = 6); ``None``: position only (p = 3, the paper).
@@ -203,6 +217,7 @@ class GPDemonstrationPolicy:
         max_joint_step: float | None = None,
         std_scale: Mapping[str, float] | None = None,
         approach_offset: float | None = 0.1,
+        align: str | None = "gripper",
         encoder_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         self.robot = robot
@@ -217,6 +232,7 @@ class GPDemonstrationPolicy:
         self.max_joint_step = max_joint_step
         self.std_scale = std_scale
         self.approach_offset = approach_offset
+        self.align = align
         self.encoder_kwargs = encoder_kwargs
 
     # -------------------------------------------------------------- parameters
@@ -234,6 +250,7 @@ class GPDemonstrationPolicy:
             "max_joint_step": self.max_joint_step,
             "std_scale": None if self.std_scale is None else dict(self.std_scale),
             "approach_offset": self.approach_offset,
+            "align": self.align,
             "encoder_kwargs": None if self.encoder_kwargs is None else dict(self.encoder_kwargs),
         }
 
@@ -301,7 +318,27 @@ class GPDemonstrationPolicy:
         kwargs.setdefault("combine", self.combine)
         encoder = DemonstrationEncoder(**kwargs)
         say = (lambda msg: print(f"  {msg}", flush=True)) if progress else None
-        encoder.fit(times, joints, ees if names else None, frames if names else None, progress=say)
+        landmarks = None
+        self.alignment_ = "none"
+        if self.align == "gripper":
+            events = [gripper_events(d) for d in demos]
+            if len({e.size for e in events}) == 1 and events[0].size > 0:
+                landmarks = events
+                self.alignment_ = f"gripper events ({events[0].size})"
+            else:
+                self.alignment_ = (
+                    "none (gripper event counts differ: " + str([e.size for e in events]) + ")"
+                )
+        elif self.align is not None:
+            raise ValueError(f"align must be 'gripper' or None, got {self.align!r}")
+        encoder.fit(
+            times,
+            joints,
+            ees if names else None,
+            frames if names else None,
+            landmarks=landmarks,
+            progress=say,
+        )
         self.encoder_ = encoder
         self.frame_names_ = list(encoder.frame_names_)
         self.phase_grid_ = np.linspace(0.0, 1.0, self.n_grid)
@@ -313,7 +350,11 @@ class GPDemonstrationPolicy:
         dts = [float(np.median(np.diff(t))) for t in times]
         self.control_dt_ = float(np.median(dts))
         self.n_demos_ = len(demos)
-        self.stage_phases_ = [stage_phases(d) for d in demos]
+        lp = encoder.landmark_phases_
+        self.stage_phases_ = [
+            stage_phases(d, phase_of(d.time, landmarks[i] if landmarks else None, lp))
+            for i, d in enumerate(demos)
+        ]
         self.constraints_ = self.constraint_report()
         self.fit_time_ = _time.perf_counter() - start
         self._build_table()
@@ -537,6 +578,7 @@ class GPDemonstrationPolicy:
             "duration": self.duration_,
             "control_dt": self.control_dt_,
             "n_demos": int(getattr(self, "n_demos_", 0)),
+            "alignment": getattr(self, "alignment_", "none"),
             "stage_phases": getattr(self, "stage_phases_", []),
             "constraints": self.constraints_,
         }
@@ -633,6 +675,7 @@ class GPDemonstrationPolicy:
         policy.duration_ = float(meta["duration"])
         policy.control_dt_ = float(meta["control_dt"])
         policy.n_demos_ = int(meta.get("n_demos", 0))
+        policy.alignment_ = str(meta.get("alignment", "none"))
         policy.stage_phases_ = list(meta.get("stage_phases", []))
         policy.constraints_ = meta.get("constraints") or policy.constraint_report()
         policy._build_table()

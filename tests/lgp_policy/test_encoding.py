@@ -112,3 +112,22 @@ def test_input_validation():
         DemonstrationEncoder(model="empirical").fit(times, joints, ees, frames)
     with pytest.raises(RuntimeError, match="not fitted"):
         DemonstrationEncoder().predict([0.5])
+
+
+def test_landmark_alignment_puts_events_at_their_mean_phase():
+    from lgp_policy.encoding import phase_of
+
+    t = np.linspace(0.0, 10.0, 101)
+    s = phase_of(t, [2.0, 6.0], [0.3, 0.5])
+    assert s[0] == 0.0 and s[-1] == 1.0
+    assert s[20] == pytest.approx(0.3) and s[60] == pytest.approx(0.5)
+    assert np.all(np.diff(s) > 0)
+    np.testing.assert_allclose(phase_of(t), t / 10.0)
+    # two demonstrations whose step happens at different times line up after alignment
+    t1, t2 = np.linspace(0, 1, 101), np.linspace(0, 2, 201)
+    y1, y2 = (t1 > 0.3).astype(float), (t2 > 1.4).astype(float)
+    enc = DemonstrationEncoder(n_steps=101, model="empirical")
+    enc.fit([t1, t2], [y1[:, None], y2[:, None]], landmarks=[[0.3], [1.4]])
+    assert enc.landmark_phases_ == pytest.approx([0.5])
+    d = enc.data_["joint"][:, :, 0]
+    assert np.abs(d[0] - d[1]).max() <= 1.0 and np.abs(d[0] - d[1]).sum() < 1.0
