@@ -7,6 +7,11 @@ quickly": ``predict`` only interpolates that table and runs one step of Algorith
 (:func:`~lgp_policy.reproduction.reproduction_step`) from the *measured* joint positions, so the
 controller is closed loop and takes well under a millisecond.
 
+By default the demonstrations are first aligned in time on the gripper command's closing and
+opening events (``align="gripper"``; landmarks at their mean normalised time, see
+:func:`lgp_policy.encoding.phase_of`), so that reach, release and press line up across
+demonstrations whose tempo differs.
+
 Per step, for an observation with ``time`` ``t`` (seconds since reset):
 
 1. phase ``s = (t + lookahead * control_dt) / duration`` (``duration`` = mean demonstration length,
