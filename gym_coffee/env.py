@@ -186,8 +186,16 @@ class CoffeeEnv(gym.Env, EzPickle):
         reward_type: str = "dense",
         width: int = 320,
         height: int = 240,
+        render_shadows: bool = False,
     ) -> None:
-        EzPickle.__init__(self, render_mode, reward_type=reward_type, width=width, height=height)
+        EzPickle.__init__(
+            self,
+            render_mode,
+            reward_type=reward_type,
+            width=width,
+            height=height,
+            render_shadows=render_shadows,
+        )
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}"
@@ -197,13 +205,12 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.render_mode = render_mode
         self.reward_type = reward_type
         self.width, self.height = int(width), int(height)
+        self.render_shadows = bool(render_shadows)
 
         self.sim = Simulation(render_mode, timestep=PHYSICS_DT, n_substeps=N_SUBSTEPS)
         self.robot = Panda(self.sim)
         self.scene = CoffeeScene(self.sim)
-        self.robot.load()
-        self.scene.load()
-        self.robot.reset(NEUTRAL_JOINTS)
+        self._load()
 
         self.action_space = spaces.Box(-1.0, 1.0, (8,), dtype=np.float32)
         self.observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
@@ -233,7 +240,12 @@ class CoffeeEnv(gym.Env, EzPickle):
         rng = self.np_random
         layout = Layout.sample(rng)
         q0 = NEUTRAL_JOINTS + rng.uniform(-START_JOINT_NOISE, START_JOINT_NOISE, size=7)
-        self.scene.load()
+        if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
+            self.sim.connect()
+            self._load()
+        # The bodies stay loaded (reloading leaked memory in PyBullet); dropping their contact
+        # caches makes the episode identical to one in a fresh env with the same seed.
+        self.sim.clear_contact_caches((self.robot.name, *self.scene.MOVABLE_BODIES))
         self.scene.reset(layout)
         self.robot.reset(q0, GRIPPER_MAX_OPENING)
         self._n_steps = 0
@@ -267,7 +279,9 @@ class CoffeeEnv(gym.Env, EzPickle):
         ``"human"``."""
         target, distance, yaw, pitch = (0.4, 0.06, 0.2), 1.25, 45.0, -25.0
         if self.render_mode == "rgb_array":
-            return self.sim.render(self.width, self.height, target, distance, yaw, pitch)
+            return self.sim.render(
+                self.width, self.height, target, distance, yaw, pitch, shadows=self.render_shadows
+            )
         if self.render_mode == "human":
             self.sim.reset_debug_camera(target, distance, yaw, pitch)
         return None
@@ -277,6 +291,12 @@ class CoffeeEnv(gym.Env, EzPickle):
             self.sim.close()
 
     # ------------------------------------------------------------------ internals
+    def _load(self) -> None:
+        """Load robot and scene into the (new) physics server."""
+        self.robot.load()
+        self.scene.load()
+        self.robot.reset(NEUTRAL_JOINTS)
+
     def _get_obs(self) -> NDArray[np.float32]:
         q, qd = self.robot.joint_states()
         cup_pos, cup_quat = self.scene.cup_pose()

@@ -92,9 +92,11 @@ class Panda:
             )
 
     def reset(self, q: ArrayLike, gripper_opening: float = GRIPPER_MAX_OPENING) -> None:
-        """Put the arm at ``q`` and the gripper at an opening (m), at rest, and hold them there."""
+        """Put the base in place, the arm at ``q`` and the gripper at an opening (m), at rest, and
+        hold them there."""
         q = np.clip(np.asarray(q, dtype=np.float64), self.joint_lower, self.joint_upper)
         half = 0.5 * float(gripper_opening)
+        self.sim.set_base_pose(self.name, self.base_position, (0.0, 0.0, 0.0, 1.0))
         self.sim.reset_joint_states(self.name, ARM_JOINTS, q)
         self.sim.reset_joint_states(self.name, FINGER_JOINTS, [half, half])
         self._command(q, gripper_opening)

@@ -56,17 +56,28 @@ class Simulation:
         if render_mode == "human" and not self.gui:
             # PyBullet's GUI would hang or abort without a display (e.g. in check_env on CI).
             logger.warning("render_mode='human' but no display is available: running headless")
-        mode = pybullet.GUI if self.gui else pybullet.DIRECT
-        self.client: bullet_client.BulletClient | None = bullet_client.BulletClient(
-            connection_mode=mode
-        )
-        if self.gui:
-            self.client.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0)
         self.timestep = float(timestep)
         self.n_substeps = int(n_substeps)
         self.solver_iterations = int(solver_iterations)
         self.bodies: dict[str, int] = {}
         self._inertial_offset: dict[str, NDArray[np.float64]] = {}
+        self.client: bullet_client.BulletClient | None = None
+        self.connect()
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` disconnected the physics server (see :meth:`connect`)."""
+        return self.client is None
+
+    def connect(self) -> None:
+        """Start a physics server (an empty world) if there is none: at construction, and again
+        after :meth:`close`."""
+        if self.client is not None:
+            return
+        mode = pybullet.GUI if self.gui else pybullet.DIRECT
+        self.client = bullet_client.BulletClient(connection_mode=mode)
+        if self.gui:
+            self.client.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0)
         self.reset_world()
 
     # ------------------------------------------------------------------ world
@@ -95,6 +106,29 @@ class Simulation:
         self.bodies.clear()
         self._inertial_offset.clear()
 
+    def clear_contact_caches(self, names: Sequence[str]) -> None:
+        """Forget the contact state of the bodies ``names`` (and remove every user constraint).
+
+        Re-sets each link's collision filter to PyBullet's default, which takes the link out of
+        the broadphase and puts it back: its overlapping pairs and contact manifolds (points,
+        warm-starting impulses) are dropped at once, and the colliders are re-added in a fixed
+        order. Call it at every reset, in the same order, the first one included: a reused world
+        then steps exactly (bit for bit) like a freshly loaded one. (Moving the bodies away and
+        running ``performCollisionDetection`` is not enough: the broadphase removes stale pairs a
+        few at a time.)
+        """
+        p = self.p
+        for i in reversed(range(p.getNumConstraints())):
+            p.removeConstraint(p.getConstraintUniqueId(i))
+        for name in names:
+            body = self.bodies[name]
+            fixed_base = p.getDynamicsInfo(body, -1)[0] == 0.0
+            for link in range(-1, p.getNumJoints(body)):
+                static = link == -1 and fixed_base
+                # PyBullet's defaults: btBroadphaseProxy::DefaultFilter / StaticFilter.
+                group, mask = (2, -1 ^ 2) if static else (1, -1)
+                p.setCollisionFilterGroupMask(body, link, group, mask)
+
     def step(self) -> None:
         """Advance the physics by ``n_substeps`` physics steps."""
         step = self.p.stepSimulation
@@ -108,6 +142,7 @@ class Simulation:
                 self.client.disconnect()
             self.client = None
         self.bodies.clear()
+        self._inertial_offset.clear()
 
     def __del__(self) -> None:
         self.close()
@@ -259,9 +294,10 @@ class Simulation:
         yaw: float,
         pitch: float,
         fov: float = 45.0,
+        shadows: bool = False,
     ) -> NDArray[np.uint8]:
         """RGB image (height, width, 3) from a camera looking at ``target`` (TinyRenderer,
-        headless)."""
+        headless). ``shadows`` costs about twice the time (TinyRenderer draws the scene twice)."""
         p = self.p
         view = p.computeViewMatrixFromYawPitchRoll(
             cameraTargetPosition=list(map(float, target)),
@@ -280,7 +316,7 @@ class Simulation:
             height=int(height),
             viewMatrix=view,
             projectionMatrix=proj,
-            shadow=1,
+            shadow=int(bool(shadows)),
             lightDirection=[0.6, -0.4, 1.0],
             renderer=renderer,
         )

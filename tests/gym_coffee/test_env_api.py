@@ -70,9 +70,9 @@ def test_sb3_check_env_without_warnings(env_id):
         warnings.simplefilter("error")
         env = make(env_id, render_mode="rgb_array")
         try:
-            # skip_render_check=True (SB3's default): SB3's render check calls env.close() and
-            # then keeps resetting and stepping the closed env; render is tested below.
-            env_checker.check_env(env, warn=True)
+            # With the render check: SB3 renders, calls env.close() and then keeps resetting
+            # and stepping the env (it reconnects in reset).
+            env_checker.check_env(env, warn=True, skip_render_check=False)
         finally:
             env.close()
 
@@ -306,14 +306,10 @@ def test_make_close_cycles_do_not_leak(env_id):
 
 
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs Linux /proc")
-@pytest.mark.xfail(
-    reason="known: ~10-14 KiB per reset from removing and reloading the scene's bodies "
-    "(docs/notes-env-issues.md, entry 7)",
-    strict=False,
-)
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_resets_in_one_env_do_not_grow_memory(env_id):
-    """RL runs reset one env many thousand times: memory must stay flat."""
+    """RL runs reset one env many thousand times: memory must stay flat (the env re-poses its
+    bodies at reset; removing and reloading them leaked ~14 KiB per reset in PyBullet)."""
     env = make(env_id)
     try:
         for i in range(30):  # warm-up
@@ -332,3 +328,86 @@ def test_resets_in_one_env_do_not_grow_memory(env_id):
     if heap0 is not None and heap1 is not None:
         grown = heap1 - heap0
         assert grown < 1024, f"malloc'd memory grew by {grown / 1024:.1f} MiB over 500 resets"
+
+
+def _teacher_episode(env: gym.Env, seed: int, max_steps: int = 400) -> tuple[np.ndarray, dict]:
+    from gym_coffee.teacher import ScriptedTeacher
+
+    obs, info = env.reset(seed=seed)
+    teacher = ScriptedTeacher(env, rng=[1, seed])
+    observations = [obs]
+    for _ in range(max_steps):
+        obs, _, terminated, truncated, info = env.step(teacher.act(obs))
+        observations.append(obs)
+        if terminated or truncated:
+            break
+    return np.array(observations), info
+
+
+def _random_episode(env: gym.Env, seed: int, n_steps: int = N_STEPS) -> np.ndarray:
+    actions = np.random.default_rng(seed).uniform(-1, 1, (n_steps, 8)).astype(np.float32)
+    observations = [env.reset(seed=seed)[0]]
+    for action in actions:
+        observations.append(env.step(action)[0])
+    return np.array(observations)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_reset_after_a_full_episode_equals_a_fresh_env(env_id):
+    """Reset re-poses the loaded bodies: after an episode that grasped, placed and pressed (or
+    stopped with the cup in the gripper), a seeded random-action episode equals a fresh env's
+    bit for bit."""
+    reused = make(env_id)
+    try:
+        _, info = _teacher_episode(reused, seed=3)  # grasps, places, presses
+        assert info["is_success"], info
+        after_success = _random_episode(reused, seed=11)
+        _teacher_episode(reused, seed=5, max_steps=120)  # stopped with the cup in the gripper
+        after_grasp = _random_episode(reused, seed=12)
+    finally:
+        reused.close()
+    for seed, got in [(11, after_success), (12, after_grasp)]:
+        fresh = make(env_id)
+        try:
+            np.testing.assert_array_equal(got, _random_episode(fresh, seed))
+        finally:
+            fresh.close()
+
+
+@pytest.mark.xfail(
+    reason="known: a contact-rich episode (teacher grasping) in a reused env drifts from a "
+    "fresh env's from the first grasp contact on (~1e-7, growing to ~1e-2); "
+    "docs/notes-env-issues.md, entry 7",
+    strict=True,
+)
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_teacher_episode_in_a_reused_env_equals_a_fresh_env(env_id):
+    reused = make(env_id)
+    try:
+        _teacher_episode(reused, seed=3)
+        got, _ = _teacher_episode(reused, seed=8)
+    finally:
+        reused.close()
+    fresh = make(env_id)
+    try:
+        np.testing.assert_array_equal(got, _teacher_episode(fresh, seed=8)[0])
+    finally:
+        fresh.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_usable_after_close(env_id):
+    """Reset after close() reconnects (SB3's render check closes the env and goes on): the
+    episode equals a fresh env's."""
+    env = make(env_id)
+    try:
+        env.reset(seed=4)
+        env.close()
+        again = _random_episode(env, seed=4, n_steps=10)
+    finally:
+        env.close()
+    fresh = make(env_id)
+    try:
+        np.testing.assert_array_equal(again, _random_episode(fresh, seed=4, n_steps=10))
+    finally:
+        fresh.close()
