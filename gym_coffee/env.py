@@ -168,7 +168,28 @@ class CoffeeEnv(gym.Env, EzPickle):
     ``reward_type``     ``"dense"`` ``"dense"`` or ``"sparse"``
     ``width``           ``320``     image width for ``"rgb_array"``
     ``height``          ``240``     image height for ``"rgb_array"``
+    ``render_shadows``  ``False``   draw shadows in ``"rgb_array"`` frames (about 2x the time)
+    ``exact_reset``     ``False``   rebuild the physics world at every reset (see below)
     ==================  ==========  ===========================================================
+
+    ## Reset and reproducibility
+    ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
+    another process). By default ``reset`` keeps the bodies loaded and re-poses them (~1 ms, no
+    memory growth); Bullet's broadphase keeps some history (the order of its pair cache), so an
+    episode with contacts in a *reused* env can differ from a fresh env's in the last bits, and the
+    difference can grow over a long contact-rich episode (e.g. 1e-2 rad after a grasp). With
+    ``exact_reset=True`` every reset rebuilds the world (``resetSimulation`` and reload, ~80 ms, no
+    memory growth): every episode then equals a fresh env's with the same seed, whatever ran before.
+
+    Pickling (``EzPickle``) keeps the constructor arguments only: the copy is a fresh env, and its
+    episode starts anew at its next ``reset``.
+
+    After :meth:`close`, the next ``reset`` starts a new physics server.
+
+    With ``gym.vector.AsyncVectorEnv(..., context="spawn")`` or ``"forkserver"`` (Python 3.14's
+    default on Linux) the workers are fresh interpreters: make the env with
+    ``gym.make("gym_coffee:gym_coffee/CoffeeTask-v0")`` or ``import gym_coffee`` inside the env
+    function, so that the id is registered there.
 
     ## Version History
     * v0: first version.
@@ -187,6 +208,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         width: int = 320,
         height: int = 240,
         render_shadows: bool = False,
+        exact_reset: bool = False,
     ) -> None:
         EzPickle.__init__(
             self,
@@ -195,6 +217,7 @@ class CoffeeEnv(gym.Env, EzPickle):
             width=width,
             height=height,
             render_shadows=render_shadows,
+            exact_reset=exact_reset,
         )
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -206,6 +229,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.reward_type = reward_type
         self.width, self.height = int(width), int(height)
         self.render_shadows = bool(render_shadows)
+        self.exact_reset = bool(exact_reset)
 
         self.sim = Simulation(render_mode, timestep=PHYSICS_DT, n_substeps=N_SUBSTEPS)
         self.robot = Panda(self.sim)
@@ -243,8 +267,11 @@ class CoffeeEnv(gym.Env, EzPickle):
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
-        # The bodies stay loaded (reloading leaked memory in PyBullet); dropping their contact
-        # caches makes the episode identical to one in a fresh env with the same seed.
+        elif self.exact_reset:  # an empty world, loaded afresh: ~80 ms
+            self.sim.reset_world()
+            self._load()
+        # Otherwise the bodies stay loaded (removing and reloading single bodies leaked memory in
+        # PyBullet) and are re-posed; their contact caches are dropped first.
         self.sim.clear_contact_caches((self.robot.name, *self.scene.MOVABLE_BODIES))
         self.scene.reset(layout)
         self.robot.reset(q0, GRIPPER_MAX_OPENING)
@@ -277,7 +304,8 @@ class CoffeeEnv(gym.Env, EzPickle):
     def render(self) -> NDArray[np.uint8] | None:
         """An RGB frame (height, width, 3) for ``"rgb_array"``; moves the GUI camera for
         ``"human"``."""
-        target, distance, yaw, pitch = (0.4, 0.06, 0.2), 1.25, 45.0, -25.0
+        # The whole arm in view, also at the start (its top was cut off at distance 1.25).
+        target, distance, yaw, pitch = (0.35, 0.06, 0.32), 1.5, 45.0, -28.0
         if self.render_mode == "rgb_array":
             return self.sim.render(
                 self.width, self.height, target, distance, yaw, pitch, shadows=self.render_shadows

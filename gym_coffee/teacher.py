@@ -113,7 +113,11 @@ class ScriptedTeacher:
     Args:
         env: the environment (a ``CoffeeEnv`` or a wrapper around one); the teacher reads its
             ``task_points()`` and ``kinematics`` at the start of each episode.
-        rng: seed or ``numpy.random.Generator`` for the human-like variation.
+        rng: seed or ``numpy.random.Generator`` for the human-like variation. Do not pass the
+            layout seed itself: ``default_rng(s)`` is the same random stream as the env's
+            ``np_random`` after ``reset(seed=s)``, so the variation would copy the layout draws;
+            derive it instead, e.g. ``np.random.default_rng([1, s])`` (as
+            ``collect_demonstrations`` does with its own constant).
         variation: scale of the variation (0: the same motion for the same layout).
 
     Call :meth:`act` with each observation; a new episode (observation time 0, or after
@@ -122,7 +126,8 @@ class ScriptedTeacher:
     Example:
         >>> import gymnasium as gym, gym_coffee
         >>> env = gym.make("gym_coffee/CoffeeTask-v0")
-        >>> teacher = ScriptedTeacher(env, rng=0)
+        >>> import numpy as np
+        >>> teacher = ScriptedTeacher(env, rng=np.random.default_rng([1, 0]))
         >>> obs, info = env.reset(seed=0)
         >>> action = teacher.act(obs)
     """
@@ -146,7 +151,11 @@ class ScriptedTeacher:
 
     # ------------------------------------------------------------------ public API
     def reset(self, obs: ArrayLike | None = None, seed: int | None = None) -> None:
-        """Forget the plan (and re-seed when ``seed`` is given); plan now if ``obs`` is given."""
+        """Forget the plan (and re-seed when ``seed`` is given); plan now if ``obs`` is given.
+
+        ``seed`` goes to ``np.random.default_rng``: a different value than the layout seed (see
+        ``rng`` in the class docstring).
+        """
         if seed is not None:
             self.rng = np.random.default_rng(seed)
         self.segments = []
