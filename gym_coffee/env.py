@@ -140,8 +140,9 @@ class CoffeeEnv(gym.Env, EzPickle):
     ``reach`` (minus the grasp point's distance to the cup's middle, until the cup is grasped),
     ``carry`` (minus the cup's distance to the place under the spout, after grasping, until placed),
     ``press`` (once placed: minus the grasp point's distance to the button, plus the button's travel
-    as a fraction of the press travel), ``stage`` (1 per stage reached: grasped, placed, success),
-    ``success`` (+10 on success) and ``failure`` (-10 if the cup falls off the table or tips over).
+    as a fraction of the press travel), ``stage`` (+1 when a stage is reached: grasped, placed,
+    success; -1 when one is lost), ``success`` (+10 on success) and ``failure`` (-10 if the cup
+    falls off the table or tips over).
     ``reward_type="sparse"``: ``success`` only, 1 on success, else 0 (the other terms are 0).
 
     ## Starting State
@@ -169,17 +170,18 @@ class CoffeeEnv(gym.Env, EzPickle):
     ``width``           ``320``     image width for ``"rgb_array"``
     ``height``          ``240``     image height for ``"rgb_array"``
     ``render_shadows``  ``False``   draw shadows in ``"rgb_array"`` frames (about 2x the time)
-    ``exact_reset``     ``False``   rebuild the physics world at every reset (see below)
+    ``exact_reset``     ``True``    rebuild the physics world at every reset (see below)
     ==================  ==========  ===========================================================
 
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
-    another process). By default ``reset`` keeps the bodies loaded and re-poses them (~1 ms, no
-    memory growth); Bullet's broadphase keeps some history (the order of its pair cache), so an
-    episode with contacts in a *reused* env can differ from a fresh env's in the last bits, and the
-    difference can grow over a long contact-rich episode (e.g. 1e-2 rad after a grasp). With
-    ``exact_reset=True`` every reset rebuilds the world (``resetSimulation`` and reload, ~80 ms, no
-    memory growth): every episode then equals a fresh env's with the same seed, whatever ran before.
+    another process). By default (``exact_reset=True``) every reset rebuilds the world
+    (``resetSimulation`` and reload, ~80 ms, no memory growth), so every episode equals a fresh
+    env's with the same seed, whatever ran before: evaluation results do not depend on how episodes
+    are spread over workers. ``exact_reset=False`` keeps the bodies loaded and re-poses them (~1 ms,
+    no memory growth), but Bullet's broadphase keeps some history (the order of its pair cache), so
+    an episode with contacts in a *reused* env can then differ from a fresh env's in the last bits,
+    and the difference can grow over a contact-rich episode (e.g. 1e-2 rad after a grasp).
 
     Pickling (``EzPickle``) keeps the constructor arguments only: the copy is a fresh env, and its
     episode starts anew at its next ``reset``.
@@ -208,7 +210,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         width: int = 320,
         height: int = 240,
         render_shadows: bool = False,
-        exact_reset: bool = False,
+        exact_reset: bool = True,
     ) -> None:
         EzPickle.__init__(
             self,
@@ -243,6 +245,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._cup_init_pos = np.zeros(3)
         self._grasped = False
         self._pressed = False
+        self._stage = 0
         self._pressed_with_cup = False
 
     # ------------------------------------------------------------------ public API
@@ -279,6 +282,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._cup_init_pos = layout.cup_pos.copy()
         self._grasped = False
         self._pressed = False
+        self._stage = 0
         self._pressed_with_cup = False
         obs = self._get_obs()
         info = self._evaluate()[0]
@@ -380,6 +384,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         failed = off_table or tipped
 
         stage = 3 if success else (2 if self._grasped and placed else (1 if self._grasped else 0))
+        previous_stage, self._stage = self._stage, stage
         terms = dict.fromkeys(REWARD_TERMS, 0.0)
         if self.reward_type == "dense":
             q, _ = self.robot.joint_states()
@@ -394,7 +399,9 @@ class CoffeeEnv(gym.Env, EzPickle):
                 terms["press"] = -float(np.linalg.norm(ee - button)) + min(
                     travel / BUTTON_PRESS_TRAVEL, 1.0
                 )
-            terms["stage"] = STAGE_BONUS * stage
+            # Paid on stage changes only (negative if a stage is lost), so an agent cannot farm
+            # the bonus by holding an intermediate stage instead of finishing the task.
+            terms["stage"] = STAGE_BONUS * (stage - previous_stage)
             terms["success"] = SUCCESS_BONUS if success else 0.0
             terms["failure"] = FAILURE_PENALTY if failed else 0.0
         else:
