@@ -86,20 +86,33 @@ class _EnvFactory:
         return _make_env(self.env_id, self.env_kwargs)
 
 
+def _run_episode(policy, env, seed: int, on_step=None) -> dict[str, Any]:
+    """One deterministic episode on ``reset(seed=seed)``: its length and the stages it reached.
+
+    ``on_step(length)`` is called after the reset (length 0) and after every control step (the
+    video recorder renders there).
+    """
+    obs, info = env.reset(seed=int(seed))
+    reached = {k: bool(info.get(k, False)) for k in STAGES}
+    length, done = 0, False
+    if on_step is not None:
+        on_step(length)
+    while not done:
+        action, _ = policy.predict(obs, deterministic=True)
+        obs, _r, terminated, truncated, info = env.step(action)
+        length += 1
+        for k in STAGES:
+            reached[k] |= bool(info.get(k, False))
+        if on_step is not None:
+            on_step(length)
+        done = bool(terminated or truncated)
+    return {"seed": int(seed), "length": length, **reached}
+
+
 def _run_serial(policy, env, seeds, bar) -> list[dict[str, Any]]:
     episodes = []
     for seed in seeds:
-        obs, info = env.reset(seed=int(seed))
-        reached = {k: bool(info.get(k, False)) for k in STAGES}
-        length, done = 0, False
-        while not done:
-            action, _ = policy.predict(obs, deterministic=True)
-            obs, _r, terminated, truncated, info = env.step(action)
-            length += 1
-            for k in STAGES:
-                reached[k] |= bool(info.get(k, False))
-            done = bool(terminated or truncated)
-        episodes.append({"seed": int(seed), "length": length, **reached})
+        episodes.append(_run_episode(policy, env, seed))
         if bar is not None:
             bar.update(1)
     return episodes
@@ -189,19 +202,13 @@ def record_rollout(
 
     env = _make_env(env_id, env_kwargs, render=True)
     try:
-        obs, info = env.reset(seed=int(seed))
-        frames = [env.render()]
-        reached = {k: bool(info.get(k, False)) for k in STAGES}
-        length, done = 0, False
-        while not done:
-            action, _ = policy.predict(obs, deterministic=True)
-            obs, _r, terminated, truncated, info = env.step(action)
-            length += 1
-            for k in STAGES:
-                reached[k] |= bool(info.get(k, False))
-            if length % every == 0:
+        frames: list[Any] = []
+
+        def grab(length: int) -> None:
+            if length == 0 or length % every == 0:
                 frames.append(env.render())
-            done = bool(terminated or truncated)
+
+        record = _run_episode(policy, env, seed, on_step=grab)
         frames.append(env.render())
         for _ in range(5):  # hold the last frame a moment
             frames.append(frames[-1])
@@ -212,7 +219,7 @@ def record_rollout(
         written = write_video(path, frames, fps=fps)
     finally:
         env.close()
-    return {"seed": int(seed), "length": length, **reached, "video": str(written)}
+    return {**record, "video": str(written)}
 
 
 def evaluate_policy_stages(
