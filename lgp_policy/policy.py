@@ -38,6 +38,7 @@ and refuses to overwrite unless ``overwrite=True``; loading validates and says w
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
@@ -606,19 +607,28 @@ class GPDemonstrationPolicy:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], robot: Any = None) -> GPDemonstrationPolicy:
+    def load(
+        cls, path: str | os.PathLike[str] | io.BytesIO, robot: Any = None
+    ) -> GPDemonstrationPolicy:
         """Read a policy written by :meth:`save`, validating it.
+
+        ``path`` may also be an in-memory file (``io.BytesIO``), e.g. a policy embedded in another
+        file; loading never writes anything.
 
         Raises:
             FileNotFoundError: no such file.
             PolicyFileError: not a policy file, unsupported schema version, missing or
                 inconsistent arrays (the message names what is wrong).
         """
-        path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"no policy file at {path}")
+        source: Any = path
+        if isinstance(path, io.BytesIO):
+            path = Path("<embedded policy>")
+        else:
+            path = source = Path(path)
+            if not path.exists():
+                raise FileNotFoundError(f"no policy file at {path}")
         try:
-            with np.load(path, allow_pickle=False) as data:
+            with np.load(source, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
         except Exception as exc:
             raise PolicyFileError(f"{path} is not a readable .npz policy file: {exc}") from exc

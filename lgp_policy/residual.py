@@ -1359,10 +1359,16 @@ def _load_base(
         raw = arrays["base_file"].tobytes()
         if hashlib.sha256(raw).hexdigest() != ref.get("sha256"):
             raise ResidualPolicyFormatError(f"{path}: the embedded base policy is corrupted")
-        with tempfile.TemporaryDirectory() as tmp:
-            tmp_path = Path(tmp) / str(ref.get("name", "base.npz"))
-            tmp_path.write_bytes(raw)
-            return load_any_policy(tmp_path), None
+        # Loaded from memory: nothing from the file is ever used as a path, nothing is written.
+        # Only a GP policy may be embedded (no nesting of residual policies).
+        from lgp_policy.policy import GPDemonstrationPolicy, PolicyFileError
+
+        try:
+            return GPDemonstrationPolicy.load(io.BytesIO(raw)), None
+        except PolicyFileError as exc:
+            raise ResidualPolicyFormatError(
+                f"{path}: the embedded base policy is not a valid GP policy ({exc})"
+            ) from exc
     base_path = Path(ref["path"])
     if not base_path.is_absolute():
         base_path = path.parent / base_path

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import subprocess
 import sys
@@ -497,6 +498,30 @@ def test_tiny_finetune_on_the_coffee_env(tmp_path):
         loaded.predict(obs, deterministic=True)[0], res.policy.predict(obs, deterministic=True)[0]
     )
     assert loaded.predict(obs[0])[0].shape == (8,)
+
+    # A crafted file whose embedded base names a path outside its folder: loading must neither
+    # write that path nor anything else, and must fail with the format error.
+    with np.load(tmp_path / "residual_policy.npz", allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(str(arrays["metadata"]))
+    target = tmp_path / "outside" / "bashrc"
+    payload = b"echo pwned\n"
+    for name in (str(target), "../../outside/bashrc"):
+        meta["base"] = {
+            "embedded": True,
+            "name": name,
+            "path": name,
+            "sha256": hashlib.sha256(payload).hexdigest(),
+        }
+        arrays["metadata"] = np.array(json.dumps(meta))
+        arrays["base_file"] = np.frombuffer(payload, dtype=np.uint8)
+        evil = tmp_path / "evil.npz"
+        np.savez(evil, **arrays)
+        before = sorted(p.name for p in tmp_path.rglob("*"))
+        with pytest.raises(ResidualPolicyFormatError, match="embedded base policy"):
+            ResidualPolicy.load(evil)
+        assert not target.exists()
+        assert sorted(p.name for p in tmp_path.rglob("*")) == before
 
 
 def test_gp_policy_kind_is_read_from_the_gp_policy_module():
