@@ -22,7 +22,7 @@ import gymnasium as gym
 import numpy as np
 
 import gym_coffee
-from lgp_policy.policy import GPDemonstrationPolicy
+from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
 
 def main() -> None:

@@ -50,9 +50,9 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 import numpy as np
 import scipy.optimize
 
-from lgp_policy.gp import GaussianProcess
-from lgp_policy.kernels import SquaredExponential, WhiteNoise
-from lgp_policy.local import LocalGP
+from lgp_policy.gp.exact import GaussianProcess
+from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
+from lgp_policy.gp.local import LocalGP
 
 N_DEMOS = 4
 N_PREDICT = 2000

@@ -27,8 +27,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import gymnasium as gym
 
 import gym_coffee
-from lgp_policy.evaluation import evaluate_policy_stages
-from lgp_policy.policy import GPDemonstrationPolicy
+from lgp_policy.app.evaluation import evaluate_policy_stages
+from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
 TARGETS = {"cup_grasped": 0.95, "cup_placed": 0.90, "button_pressed": 0.80}
 COLUMNS = (

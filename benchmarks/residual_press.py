@@ -21,7 +21,8 @@ a file. Everything goes to ``--out`` (default ``runs/residual_press``): the base
 the fine-tuned policy, its learning curve and checkpoints, ``results.json`` and
 ``learning_curves.png`` (all seeds).
 
-Harder variant ``machine-offset`` (``lgp_policy.residual.MachinePoseErrorWrapper``): the observed
+Harder variant ``machine-offset``
+(``lgp_policy.residual.core.MachinePoseErrorWrapper``): the observed
 machine position is shifted 2-10 mm (uniform, per episode) towards the machine's front, a
 perception/calibration error. The physics are untouched. The GP policy places and presses
 relative to the observed machine frame, so it aims short: the place tolerates it (25 mm), the
@@ -49,7 +50,7 @@ def _fit_base(out: Path, n_demos: int) -> Path:
     import gymnasium as gym
 
     import gym_coffee
-    from lgp_policy.policy import GPDemonstrationPolicy
+    from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
     path = out / "base_policy.npz"
     if path.exists():
@@ -67,8 +68,8 @@ def _fit_base(out: Path, n_demos: int) -> Path:
 def _cached_eval(out: Path, base_path: Path, variant, variant_range, seeds, base) -> dict:
     """The base policy's evaluation, reused from ``out/base_eval.json`` when the same policy file,
     variant and layouts were evaluated before (so ``--seeds 1 2`` later does not redo it)."""
-    from lgp_policy.residual import _sha256, evaluate_stages
-    from lgp_policy.residual_cli import build_env_fn
+    from lgp_policy.app.finetune_cli import build_env_fn
+    from lgp_policy.residual.core import _sha256, evaluate_stages
 
     key = f"{_sha256(Path(base_path))}|{variant}|{list(variant_range)}|{seeds[0]}|{len(seeds)}"
     cache_path = out / "base_eval.json"
@@ -122,9 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     threadpool_limits(1)
 
-    from lgp_policy.evaluation import EVAL_SEED_OFFSET
-    from lgp_policy.residual import evaluate_stages, finetune, load_any_policy
-    from lgp_policy.residual_cli import build_env_fn, make_gate
+    from lgp_policy.app.evaluation import EVAL_SEED_OFFSET
+    from lgp_policy.app.finetune_cli import build_env_fn, make_gate
+    from lgp_policy.residual.core import evaluate_stages, finetune, load_any_policy
 
     args.out.mkdir(parents=True, exist_ok=True)
     base_path = args.policy or _fit_base(args.out, args.demos)

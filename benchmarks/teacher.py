@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         good = [d for d in demos if d.success] or list(demos)
         demo = good[0]
         if args.video is not None:
-            from gym_coffee.cli import record_video
+            from lgp_policy.app.cli import record_video
 
             path = record_video(env_id, demo, args.video)
             print(f"wrote {path} (replay of seed {demo.seed}, {demo.n_steps} steps)")

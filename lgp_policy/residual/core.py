@@ -7,7 +7,7 @@ policy where it matters, and nowhere else:
     applied = clip(base + scale * gate * residual, low, high)
 
 - ``base`` is any SB3 ``PolicyPredictor`` (``predict(obs, state, episode_start, deterministic)``),
-  normally a :class:`~lgp_policy.policy.GPDemonstrationPolicy`; it is always asked
+  normally a :class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy`; it is always asked
   deterministically.
 - ``gate`` in ``[0, 1]`` confines the residual to the press phase. The default
   :class:`PhaseGate` is a function of the **phase** (normalised time) only: the base policy's own
@@ -841,16 +841,17 @@ def register_policy_kind(kind: str, loader: Callable[[str | os.PathLike[str]], A
 
 
 def _gp_policy_loader(path: str | os.PathLike[str]) -> Any:
-    from lgp_policy.policy import GPDemonstrationPolicy
+    from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
     return GPDemonstrationPolicy.load(path)
 
 
 def gp_policy_kind() -> str | None:
-    """``metadata["kind"]``/``["format"]`` of a GP policy file: ``lgp_policy.policy.FORMAT_NAME``,
-    read from that module so the two never drift apart (``None`` if it cannot be imported)."""
+    """``metadata["kind"]``/``["format"]`` of a GP policy file:
+    ``lgp_policy.lfd.policy.FORMAT_NAME``, read from that module so the two never drift apart
+    (``None`` if it cannot be imported)."""
     try:
-        from lgp_policy.policy import FORMAT_NAME
+        from lgp_policy.lfd.policy import FORMAT_NAME
     except ImportError:
         return None
     return str(FORMAT_NAME)
@@ -1361,7 +1362,7 @@ def _load_base(
             raise ResidualPolicyFormatError(f"{path}: the embedded base policy is corrupted")
         # Loaded from memory: nothing from the file is ever used as a path, nothing is written.
         # Only a GP policy may be embedded (no nesting of residual policies).
-        from lgp_policy.policy import GPDemonstrationPolicy, PolicyFileError
+        from lgp_policy.lfd.policy import GPDemonstrationPolicy, PolicyFileError
 
         try:
             return GPDemonstrationPolicy.load(io.BytesIO(raw)), None
@@ -1399,7 +1400,7 @@ def evaluate_stages(
     """Run one episode per seed and report per-stage success.
 
     A stage counts if its ``info`` flag (:data:`STAGE_KEYS`, those the env reports) was true at
-    any step of the episode, as in :func:`lgp_policy.evaluation.evaluate_policy_stages` (which
+    any step of the episode, as in :func:`lgp_policy.app.evaluation.evaluate_policy_stages` (which
     takes env ids; this one takes any env factory, e.g. a harder variant). Because ``cup_placed``
     is the env's "stands under the spout now", the rates also hold ``cup_placed_at_end``: a
     residual that knocks the cup over after it was placed loses that one. Returns ``{"episodes",

@@ -211,7 +211,7 @@ class DemonstrationEncoder:
     def make_kernel(self) -> Any:
         """The squared-exponential + white-noise kernel (Eq. 10) every GP starts from, with
         bounds that rule out the degenerate optima seen on demonstrations (see below)."""
-        from lgp_policy.kernels import SquaredExponential, WhiteNoise
+        from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
 
         # A length scale below the grid spacing lets the likelihood "explain" a sharp step by
         # interpolating the grid points and reverting to the mean in between (measured on a
@@ -234,15 +234,15 @@ class DemonstrationEncoder:
         kernel = self.make_kernel()
         kwargs = dict(self.model_kwargs or {})
         if self.model == "exact":
-            from lgp_policy.gp import GaussianProcess
+            from lgp_policy.gp.exact import GaussianProcess
 
             return GaussianProcess(kernel, random_state=self.random_state, **kwargs)
         if self.model == "heteroscedastic":
-            from lgp_policy.heteroscedastic import HeteroscedasticGP
+            from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 
             return HeteroscedasticGP(kernel, random_state=self.random_state, **kwargs)
         if self.model == "local":
-            from lgp_policy.local import LocalGP
+            from lgp_policy.gp.local import LocalGP
 
             return LocalGP(
                 kernel,

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from lgp_policy.encoding import JOINT_FRAME
+from lgp_policy.lfd.encoding import JOINT_FRAME
 
 __all__ = [
     "make_all",
@@ -146,7 +146,7 @@ def rollout_trace(policy: Any, seed: int, *, env_id: str = "gym_coffee/CoffeeTas
     import gymnasium as gym
 
     import gym_coffee  # noqa: F401
-    from lgp_policy.reproduction import frame_estimate
+    from lgp_policy.lfd.reproduction import frame_estimate
 
     env = gym.make(env_id)
     try:
@@ -265,8 +265,8 @@ def plot_heteroscedastic(
     """Fig. 1 on one dimension of the demonstrations: (a) a standard (homoscedastic) GP, (b) the
     encoder's own model (the local heteroscedastic GP the policy uses; +-2 std includes the
     input-dependent noise), (c) the noise models against the demonstrations' spread."""
-    from lgp_policy.gp import GaussianProcess
-    from lgp_policy.heteroscedastic import HeteroscedasticGP
+    from lgp_policy.gp.exact import GaussianProcess
+    from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 
     plt = _plt()
     if frame is None or dim is None:
@@ -346,7 +346,7 @@ def plot_clustering(
 ) -> Path:
     """Fig. 2: the input-space clustering of a ``LocalGP`` (Algorithm 1): data coloured by local
     model, the centres (squares) and the weighting functions ``k(x, c_l)``."""
-    from lgp_policy.local import LocalGP
+    from lgp_policy.gp.local import LocalGP
 
     plt = _plt()
     if frame is None or dim is None:

@@ -1,5 +1,5 @@
 """Subcommands of ``gym-coffee`` that belong to the learning side: ``fit``, ``evaluate``, ``run``
-(and ``finetune``, added by :mod:`lgp_policy.residual_cli` when it is importable).
+(and ``finetune``, added by :mod:`lgp_policy.app.finetune_cli` when it is importable).
 
 * ``gym-coffee fit DEMOS --out POLICY.npz``: encode recorded demonstrations into a policy file.
 * ``gym-coffee evaluate POLICY --episodes N --seed S [--workers K] [--video out.mp4]
@@ -69,7 +69,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_run)
 
     try:  # the residual-RL subcommand lives in its own module (optional extra)
-        from lgp_policy.residual_cli import add_finetune_subcommand
+        from lgp_policy.app.finetune_cli import add_finetune_subcommand
     except ImportError:  # pragma: no cover - depends on the checkout
         pass
     else:
@@ -105,19 +105,19 @@ def _policy_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 def load_policy(path: str | Path) -> Any:
     """Open a GP policy ``.npz`` or any other policy kind this project writes (residual)."""
     try:
-        from lgp_policy.residual import load_any_policy
+        from lgp_policy.residual.core import load_any_policy
     except ImportError:
         load_any_policy = None
     if load_any_policy is not None:
         return load_any_policy(path)
-    from lgp_policy.policy import GPDemonstrationPolicy
+    from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
     return GPDemonstrationPolicy.load(path)
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from gym_coffee.demonstrations import DemonstrationSet
-    from lgp_policy.policy import GPDemonstrationPolicy
+    from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
     demos = DemonstrationSet.load(args.demos)
     out = Path(args.out)
@@ -134,7 +134,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from lgp_policy.evaluation import evaluate_policy_stages, format_results
+    from lgp_policy.app.evaluation import evaluate_policy_stages, format_results
 
     policy = load_policy(args.policy)
     result = evaluate_policy_stages(
@@ -185,8 +185,8 @@ def run_pipeline(
     import gymnasium as gym
 
     import gym_coffee
-    from lgp_policy.evaluation import evaluate_policy_stages, format_results, record_rollout
-    from lgp_policy.policy import GPDemonstrationPolicy
+    from lgp_policy.app.evaluation import evaluate_policy_stages, format_results, record_rollout
+    from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -232,7 +232,7 @@ def run_pipeline(
     if plots:
         print("[4/5] plotting", flush=True)
         t = time.perf_counter()
-        from lgp_policy import plots as _plots
+        from lgp_policy.app import plots as _plots
 
         files.update(_plots.make_all(policy, demos, out, seed=result["seeds"][0]))
         timings["plots_s"] = time.perf_counter() - t

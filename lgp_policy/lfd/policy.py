@@ -1,15 +1,15 @@
 """``GPDemonstrationPolicy``: the paper's LfD controller as a stable-baselines3 ``PolicyPredictor``.
 
-``fit(demos)`` encodes the demonstrations (:class:`~lgp_policy.encoding.DemonstrationEncoder`:
+``fit(demos)`` encodes the demonstrations (:class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`:
 joint space plus the hand relative to the cup and to the machine) and then evaluates every
 GP once on a dense phase grid. The paper notes that "the prediction part can then be performed very
 quickly": ``predict`` only interpolates that table and runs one step of Algorithm 3
-(:func:`~lgp_policy.reproduction.reproduction_step`) from the *measured* joint positions, so the
+(:func:`~lgp_policy.lfd.reproduction.reproduction_step`) from the *measured* joint positions, so the
 controller is closed loop and takes well under a millisecond.
 
 By default the demonstrations are first aligned in time on the gripper command's closing and
 opening events (``align="gripper"``; landmarks at their mean normalised time, see
-:func:`lgp_policy.encoding.phase_of`), so that reach, release and press line up across
+:func:`lgp_policy.lfd.encoding.phase_of`), so that reach, release and press line up across
 demonstrations whose tempo differs.
 
 Per step, for an observation with ``time`` ``t`` (seconds since reset):
@@ -51,8 +51,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
-from lgp_policy.reproduction import (
+from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
+from lgp_policy.lfd.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
@@ -197,7 +197,7 @@ class GPDemonstrationPolicy:
                    hand's approach (z) axis, so each object frame also encodes the approach
                    direction (task vector p = 6); ``None``: position only (p = 3, the paper).
                    Needs ``robot.forward_pose`` and ``robot.jacobian`` (``PandaKinematics``)
-    encoder_kwargs extra arguments for :class:`~lgp_policy.encoding.DemonstrationEncoder`
+    encoder_kwargs extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
     ============== ===================================================================
 
     Attributes (after ``fit`` or ``load``):

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy._validation import check_positive
+from lgp_policy.gp._validation import check_positive
 
 __all__ = ["Kernel", "SquaredExponential", "Sum", "WhiteNoise"]
 

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from gymnasium.wrappers import TimeAwareObservation
 
-from lgp_policy.residual import (
+from lgp_policy.app.finetune_cli import add_finetune_subcommand
+from lgp_policy.residual.core import (
     RL_EXTRA_HINT,
     PhaseGate,
     ResidualPolicyFormatError,
@@ -25,7 +26,6 @@ from lgp_policy.residual import (
     load_any_policy,
     require_rl,
 )
-from lgp_policy.residual_cli import add_finetune_subcommand
 
 TIME_INDEX = 3  # Pendulum (cos, sin, thetadot) + normalised time
 
@@ -186,10 +186,10 @@ def test_modules_import_without_sb3_and_torch():
         "import sys\n"
         "sys.modules['stable_baselines3'] = None\n"
         "sys.modules['torch'] = None\n"
-        "import lgp_policy, lgp_policy.residual, lgp_policy.residual_cli\n"
+        "import lgp_policy, lgp_policy.residual.core, lgp_policy.app.finetune_cli\n"
         "from lgp_policy import ResidualWrapper, ResidualPolicy\n"
         "import numpy as np, gymnasium as gym\n"
-        "from lgp_policy.residual import PhaseGate\n"
+        "from lgp_policy.residual.core import PhaseGate\n"
         "class B:\n"
         "    def predict(self, o, state=None, episode_start=None, deterministic=False):\n"
         "        return np.zeros((len(o), 1), np.float32), state\n"
@@ -207,7 +207,7 @@ def test_modules_import_without_sb3_and_torch():
 sb3 = pytest.importorskip("stable_baselines3")
 torch = pytest.importorskip("torch")
 
-from lgp_policy.residual import (  # noqa: E402
+from lgp_policy.residual.core import (  # noqa: E402
     DEFAULT_HYPERPARAMETERS,
     ResidualPolicy,
     _build_model,
@@ -525,14 +525,14 @@ def test_tiny_finetune_on_the_coffee_env(tmp_path):
 
 
 def test_gp_policy_kind_is_read_from_the_gp_policy_module():
-    from lgp_policy.policy import FORMAT_NAME
-    from lgp_policy.residual import gp_policy_kind
+    from lgp_policy.lfd.policy import FORMAT_NAME
+    from lgp_policy.residual.core import gp_policy_kind
 
     assert gp_policy_kind() == FORMAT_NAME
 
 
 def test_press_reward_pays_the_stage_bonus_once():
-    from lgp_policy.residual import press_reward
+    from lgp_policy.residual.core import press_reward
 
     def info(stage, **terms):
         out = {"stage": stage, "reward_stage": float(stage)}
@@ -551,7 +551,7 @@ def test_press_reward_pays_the_stage_bonus_once():
 
 def test_machine_pose_error_shifts_only_the_observed_machine_position():
     from gym_coffee.env import OBS_SLICES
-    from lgp_policy.residual import MachinePoseErrorWrapper
+    from lgp_policy.residual.core import MachinePoseErrorWrapper
 
     plain, shifted = make_coffee(), MachinePoseErrorWrapper(make_coffee(), low=0.004, high=0.008)
     o1, _ = plain.reset(seed=3)
@@ -571,7 +571,7 @@ def test_machine_pose_error_shifts_only_the_observed_machine_position():
 
 
 def test_press_phase_start_from_the_demonstrations_stage_phases():
-    from lgp_policy.residual_cli import PLACED_MARGIN, _press_phase_start, make_gate
+    from lgp_policy.app.finetune_cli import PLACED_MARGIN, _press_phase_start, make_gate
 
     class Reported(PendulumPD):
         def constraint_report(self):
@@ -593,7 +593,7 @@ def test_press_phase_start_from_the_demonstrations_stage_phases():
 
 def test_teacher_base_is_bound_to_the_env_it_acts_in():
     from gym_coffee.teacher import ScriptedTeacher
-    from lgp_policy.residual import TeacherBase
+    from lgp_policy.residual.core import TeacherBase
 
     env = make_coffee()
     teacher = ScriptedTeacher(env, rng=0, variation=0.0)
@@ -614,7 +614,7 @@ def test_teacher_base_is_bound_to_the_env_it_acts_in():
 
 
 def test_actuation_noise_wrapper_starts_on_an_info_flag():
-    from lgp_policy.residual import ActuationNoiseWrapper
+    from lgp_policy.residual.core import ActuationNoiseWrapper
 
     rec = Recorder(make_pendulum())
     env = ActuationNoiseWrapper(rec, bias=0.25, start_on_info="go")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lgp_policy.reproduction import (
+from lgp_policy.lfd.reproduction import (
     FrameEstimate,
     damped_pseudoinverse,
     frame_estimate,

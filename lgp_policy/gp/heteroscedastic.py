@@ -29,14 +29,14 @@ import numpy as np
 import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy._validation import check_random_state, check_X, check_X_y
-from lgp_policy.gp import (
+from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
+from lgp_policy.gp.exact import (
     GaussianProcess,
     Optimizer,
     default_kernel,
     fit_shared_hyperparameters,
 )
-from lgp_policy.kernels import Kernel, SquaredExponential, WhiteNoise
+from lgp_policy.gp.kernels import Kernel, SquaredExponential, WhiteNoise
 
 #: Floor of ``1 - var_f / r`` in the leverage correction of squared residuals.
 MIN_RESIDUAL_FRACTION = 0.05
@@ -51,7 +51,7 @@ __all__ = [
 
 
 def signal_kernel(kernel: Kernel) -> Kernel:
-    """``kernel`` without its :class:`~lgp_policy.kernels.WhiteNoise` terms (a copy)."""
+    """``kernel`` without its :class:`~lgp_policy.gp.kernels.WhiteNoise` terms (a copy)."""
     parts = [leaf.clone() for leaf in kernel.leaves() if not leaf.is_noise]
     if not parts:
         raise ValueError("kernel has no signal (non-noise) term")
@@ -103,7 +103,7 @@ def most_likely_em(
 ) -> EMResult:
     """Most-likely heteroscedastic EM (Kersting et al. 2007) on one or more data sets.
 
-    With several data sets (the local models of :class:`~lgp_policy.local.LocalGP`) the
+    With several data sets (the local models of :class:`~lgp_policy.gp.local.LocalGP`) the
     hyperparameters are shared: each learning step maximises the *sum* of the data sets' log
     marginal likelihoods. Each data set's z-process has its own constant mean (the mean of its
     log-noise targets). ``learn=False`` keeps ``kernel`` and ``noise_kernel`` as given.

@@ -16,7 +16,7 @@ import pytest
 import gym_coffee
 from gym_coffee.demonstrations import Demonstration, DemonstrationSet
 from gym_coffee.env import OBS_DIM, obs_part
-from lgp_policy.policy import GPDemonstrationPolicy, PolicyFileError
+from lgp_policy.lfd.policy import GPDemonstrationPolicy, PolicyFileError
 
 N_STEPS = 40
 

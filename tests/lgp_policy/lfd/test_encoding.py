@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lgp_policy.encoding import DemonstrationEncoder, constraint_intervals, resample
+from lgp_policy.lfd.encoding import DemonstrationEncoder, constraint_intervals, resample
 
 MODELS = ["empirical", "local"]
 
@@ -115,7 +115,7 @@ def test_input_validation():
 
 
 def test_landmark_alignment_puts_events_at_their_mean_phase():
-    from lgp_policy.encoding import phase_of
+    from lgp_policy.lfd.encoding import phase_of
 
     t = np.linspace(0.0, 10.0, 101)
     s = phase_of(t, [2.0, 6.0], [0.3, 0.5])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from lgp_policy.kernels import SquaredExponential, Sum, WhiteNoise
+from lgp_policy.gp.kernels import SquaredExponential, Sum, WhiteNoise
 
 
 @pytest.fixture

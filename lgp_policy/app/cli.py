@@ -1,8 +1,7 @@
 """The ``gym-coffee`` command line.
 
-``record`` lives here; ``fit``, ``evaluate``, ``run`` and ``finetune`` are added by
-:func:`lgp_policy.cli.add_subcommands`. ``record`` works even when that import fails (the error is
-kept and shown if one of the missing subcommands is asked for).
+The single entry point of the application layer: ``record`` lives here; ``fit``, ``evaluate``,
+``run`` and ``finetune`` are added by :func:`lgp_policy.app.commands.add_subcommands`.
 
 Example:
     $ gym-coffee record --n 4 --out demos.npz --seed 0 --video demo.mp4
@@ -15,11 +14,12 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from lgp_policy.app.commands import add_subcommands
+
 if TYPE_CHECKING:
     from gym_coffee.demonstrations import Demonstration
 
 DEFAULT_ENV_ID = "gym_coffee/CoffeeTask-v0"
-_LEARNING_COMMANDS = ("fit", "evaluate", "run", "finetune")
 
 
 def _positive_int(text: str) -> int:
@@ -181,22 +181,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     add_record_subcommand(sub)
-    try:
-        from lgp_policy.cli import add_subcommands
-    except Exception as exc:  # the learning side is optional for `record`
-        parser.set_defaults(_learning_import_error=exc)
-    else:
-        add_subcommands(sub)
+    add_subcommands(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    argv = sys.argv[1:] if argv is None else list(argv)
-    error = parser.get_default("_learning_import_error")
-    if error is not None and argv and argv[0] in _LEARNING_COMMANDS:
-        parser.error(f"'{argv[0]}' is unavailable: importing lgp_policy.cli failed: {error!r}")
-    args = parser.parse_args(argv)
+    args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
     return int(args.func(args) or 0)
 
 

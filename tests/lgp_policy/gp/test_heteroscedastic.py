@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lgp_policy.gp import GaussianProcess
-from lgp_policy.heteroscedastic import HeteroscedasticGP
+from lgp_policy.gp.exact import GaussianProcess
+from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 
 
 def goldberg(n: int, rng: np.random.Generator):

@@ -10,8 +10,8 @@ import pytest
 
 pytest.importorskip("gym_coffee.teacher")
 
-from gym_coffee.cli import main
-from lgp_policy.policy import GPDemonstrationPolicy
+from lgp_policy.app.cli import main
+from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
 
 def test_run_fit_evaluate(tmp_path, capsys):

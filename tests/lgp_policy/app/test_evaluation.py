@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lgp_policy.evaluation import (
+from lgp_policy.app.evaluation import (
     EVAL_SEED_OFFSET,
     STAGES,
     evaluate_policy_stages,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from lgp_policy.gp import GaussianProcess
-from lgp_policy.kernels import SquaredExponential, WhiteNoise
+from lgp_policy.gp.exact import GaussianProcess
+from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
 
 
 @pytest.fixture
@@ -127,7 +127,7 @@ class _Negative(SquaredExponential):
 
 def test_not_positive_definite_names_the_remedy(data):
     X, y = data
-    from lgp_policy.gp import NotPositiveDefiniteError
+    from lgp_policy.gp.exact import NotPositiveDefiniteError
 
     with pytest.raises(NotPositiveDefiniteError, match="WhiteNoise"):
         GaussianProcess(_Negative(1.0, 1.0), optimizer=None).fit(X, y)

@@ -9,9 +9,9 @@ normalised covariance ``w = k(x, c) / sqrt(k(x, x) k(c, c))`` (for the squared e
 at ``x``. Centres are the running means of their points. The signal part of ``kernel`` with its
 *initial* hyperparameters defines ``w``. A model holding ``max_points`` distinct inputs no longer
 accepts new inputs (the next one opens a new model). Replicates (the same input in several
-demonstrations) are solved exactly on their distinct inputs (see :mod:`lgp_policy.gp`) and cost
-nothing extra, so the cap bounds a model's cost at ``O(max_points^3)`` and keeps the whole fit
-near-linear in ``n``. Points are visited in the lexicographic order of ``X``
+demonstrations) are solved exactly on their distinct inputs (see :mod:`lgp_policy.gp.exact`)
+and cost nothing extra, so the cap bounds a model's cost at ``O(max_points^3)`` and keeps the
+whole fit near-linear in ``n``. Points are visited in the lexicographic order of ``X``
 (``order="sorted"``, the default): for the 1-D time input of learning from demonstration this puts
 the replicates of all demonstrations at one time step into the same model and makes the models
 contiguous time windows; for sorted 1-D inputs and a squared-exponential kernel the assignment runs
@@ -60,21 +60,21 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import logsumexp
 
-from lgp_policy._validation import check_random_state, check_X, check_X_y
-from lgp_policy.gp import (
+from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
+from lgp_policy.gp.exact import (
     GaussianProcess,
     Optimizer,
     default_kernel,
     fit_shared_hyperparameters,
     unique_rows,
 )
-from lgp_policy.heteroscedastic import (
+from lgp_policy.gp.heteroscedastic import (
     HeteroscedasticGP,
     default_noise_kernel,
     most_likely_em,
     signal_kernel,
 )
-from lgp_policy.kernels import Kernel, SquaredExponential
+from lgp_policy.gp.kernels import Kernel, SquaredExponential
 
 __all__ = ["COMBINE_RULES", "LocalGP"]
 

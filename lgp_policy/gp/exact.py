@@ -24,8 +24,8 @@ import scipy.linalg
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy._validation import check_random_state, check_X, check_X_y
-from lgp_policy.kernels import Kernel, SquaredExponential, WhiteNoise
+from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
+from lgp_policy.gp.kernels import Kernel, SquaredExponential, WhiteNoise
 
 __all__ = [
     "GaussianProcess",
@@ -243,7 +243,7 @@ class GaussianProcess:
     """Exact GP regression, ``y = f(x) + eps`` with ``f ~ GP(0, k)`` (Eqs. 1, 2, 4).
 
     Args:
-        kernel: covariance function; noise enters through :class:`~lgp_policy.kernels.WhiteNoise`
+        kernel: covariance function; noise enters through :class:`~lgp_policy.gp.kernels.WhiteNoise`
             terms (Eq. 10). Default ``SquaredExponential(1, 1) + WhiteNoise(0.1)``.
         optimizer: ``"L-BFGS-B"`` (bounded, default), ``"CG"`` (conjugate gradient as in the
             paper; theta is clipped to the bounds), ``None`` (keep the kernel's hyperparameters),
@@ -254,7 +254,7 @@ class GaussianProcess:
             before fitting; hyperparameters then refer to the normalised targets.
         alpha: fixed extra noise variance per training sample (scalar or ``(n_samples,)``) in
             normalised units, added to the diagonal like scikit-learn's ``alpha``. Used by
-            :class:`~lgp_policy.heteroscedastic.HeteroscedasticGP` for its ``R`` (Eq. 5).
+            :class:`~lgp_policy.gp.heteroscedastic.HeteroscedasticGP` for its ``R`` (Eq. 5).
         collapse_replicates: solve on the unique inputs (exact, see module docstring). Falls back
             to the dense solve when ``alpha`` differs between replicates or no noise term exists.
         max_iter: iteration limit passed to scipy's optimiser.

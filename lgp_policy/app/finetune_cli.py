@@ -1,8 +1,8 @@
 """``gym-coffee finetune``: residual-RL fine-tuning of the button press.
 
-:func:`lgp_policy.cli.add_subcommands` adds it with::
+:func:`lgp_policy.app.commands.add_subcommands` adds it with::
 
-    from lgp_policy.residual_cli import add_finetune_subcommand
+    from lgp_policy.app.finetune_cli import add_finetune_subcommand
     add_finetune_subcommand(subparsers)
 
 This module imports only the standard library at module level: ``gym-coffee --help`` and every
@@ -97,7 +97,7 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
         default="none",
         help="harder env variant for when the base already presses reliably: 'machine-offset' "
         "shifts the observed machine position a few mm towards its front, so the base aims "
-        "short of the button (lgp_policy.residual.MachinePoseErrorWrapper; default: none)",
+        "short of the button (lgp_policy.residual.core.MachinePoseErrorWrapper; default: none)",
     )
     p.add_argument(
         "--variant-range",
@@ -114,10 +114,10 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
 
 
 def make_gate(base: Any, start: float | None = None) -> Any:
-    """The default gate for ``base``: a :class:`~lgp_policy.residual.PhaseGate` on the base's own
-    phase when it has ``phase(observation)``, else on the observation's time over the base's
-    ``duration`` (seconds) if it has one, else over the env's time limit."""
-    from lgp_policy.residual import PhaseGate
+    """The default gate for ``base``: a :class:`~lgp_policy.residual.core.PhaseGate` on the
+    base's own phase when it has ``phase(observation)``, else on the observation's time over
+    the base's ``duration`` (seconds) if it has one, else over the env's time limit."""
+    from lgp_policy.residual.core import PhaseGate
 
     if start is None:
         start = _press_phase_start(base)
@@ -179,7 +179,7 @@ def build_env_fn(
     env_kwargs: dict[str, Any] | None = None,
 ) -> Any:
     """A picklable factory for the training/evaluation env, optionally the harder variant
-    ``"machine-offset"`` (:class:`~lgp_policy.residual.MachinePoseErrorWrapper`)."""
+    ``"machine-offset"`` (:class:`~lgp_policy.residual.core.MachinePoseErrorWrapper`)."""
     return _EnvFactory(variant, (float(offset_range[0]), float(offset_range[1])), env_kwargs)
 
 
@@ -202,7 +202,7 @@ class _EnvFactory:
 
         env = gym.make(ENV_ID, **self.env_kwargs)
         if self.variant == "machine-offset":
-            from lgp_policy.residual import MachinePoseErrorWrapper
+            from lgp_policy.residual.core import MachinePoseErrorWrapper
 
             low, high = self.offset_range
             env = MachinePoseErrorWrapper(env, low=low, high=high)
@@ -211,7 +211,7 @@ class _EnvFactory:
 
 def run_finetune(args: argparse.Namespace) -> int:
     """Entry point of ``gym-coffee finetune``."""
-    from lgp_policy.residual import require_rl
+    from lgp_policy.residual.core import require_rl
 
     try:
         _, torch = require_rl()
@@ -219,7 +219,7 @@ def run_finetune(args: argparse.Namespace) -> int:
         print(f"gym-coffee finetune: {exc}", file=sys.stderr)
         return 2
     torch.set_num_threads(1)
-    from lgp_policy.residual import finetune, load_any_policy
+    from lgp_policy.residual.core import finetune, load_any_policy
 
     base_path = Path(args.policy)
     try:

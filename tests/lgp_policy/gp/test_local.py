@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lgp_policy import local as local_module
-from lgp_policy.gp import GaussianProcess
-from lgp_policy.heteroscedastic import HeteroscedasticGP
-from lgp_policy.kernels import SquaredExponential, WhiteNoise
-from lgp_policy.local import COMBINE_RULES, LocalGP
+from lgp_policy.gp import local as local_module
+from lgp_policy.gp.exact import GaussianProcess
+from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
+from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
+from lgp_policy.gp.local import COMBINE_RULES, LocalGP
 
 
 def truth(t):
