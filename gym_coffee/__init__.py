@@ -13,11 +13,17 @@ from gymnasium.envs.registration import register, registry
 
 __version__ = "0.1.0"
 
-ENV_IDS: list[str] = ["gym_coffee/CoffeeTask-v0"]
+#: The default environment id (the easy level). Every module refers to it through this name.
+ENV_ID = "gym_coffee/CoffeeTask-v0"
+#: Every registered id.
+ENV_IDS: list[str] = [ENV_ID]
+#: The task's stages in order: the ``info`` flags an episode reaches one after the other.
+#: ``info["is_success"]`` is the whole task (pressed while the cup stands placed).
+STAGES: tuple[str, ...] = ("cup_grasped", "cup_placed", "button_pressed")
 
-if "gym_coffee/CoffeeTask-v0" not in registry:
+if ENV_ID not in registry:
     register(
-        id="gym_coffee/CoffeeTask-v0",
+        id=ENV_ID,
         entry_point="gym_coffee.env:CoffeeEnv",
         max_episode_steps=400,
     )
@@ -32,7 +38,7 @@ _LAZY = {
     "collect_demonstrations": "gym_coffee.demonstrations",
 }
 
-__all__ = ["ENV_IDS", "__version__", *_LAZY]
+__all__ = ["ENV_ID", "ENV_IDS", "STAGES", "__version__", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:
