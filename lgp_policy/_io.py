@@ -110,13 +110,13 @@ def check_output_path(
         FileExistsError: ``path`` exists and ``force`` is false.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{what} {path} is a folder; expected a file name")
     if suffixes is not None and path.suffix.lower() not in suffixes:
         raise ValueError(
             f"{what} {path}: expected a name ending in {' or '.join(suffixes)}, "
             f"got {path.suffix or 'no suffix'!r}"
         )
-    if path.is_dir():
-        raise ValueError(f"{what} {path} is a folder; expected a file name")
     if path.exists() and not force:
         raise _refuse_existing(path)
     parent = path.absolute().parent
