@@ -442,21 +442,34 @@ class DemonstrationSet(Sequence[Demonstration]):
         out["lengths"] = np.array([d.n_steps for d in demos], dtype=np.int64)
         out["seeds"] = np.array(self.seeds, dtype=np.int64)
         out["success"] = np.array([d.success for d in demos], dtype=np.bool_)
+        out["metadata"] = np.array(json.dumps(self.file_metadata(), sort_keys=True))
+        return out
+
+    def file_metadata(self) -> dict[str, Any]:
+        """``metadata`` plus the keys that describe the file (``format``, ``schema_version``,
+        ``obs_dim``, ``objects``, ``stage_names``, ``action_type``), as plain JSON values.
+
+        Raises:
+            DemonstrationFormatError: the set is empty.
+            TypeError: ``metadata`` is not JSON-serialisable.
+        """
+        if not self._demos:
+            raise DemonstrationFormatError("cannot save an empty DemonstrationSet")
         meta = dict(self.metadata)
         meta.update(
             format=FORMAT_NAME,
             schema_version=SCHEMA_VERSION,
-            obs_dim=demos[0].obs_dim,
+            obs_dim=self._demos[0].obs_dim,
             objects=self.objects,
             stage_names=list(STAGE_NAMES),
             action_type=self.action_type,
         )
         try:
-            text = json.dumps(meta, sort_keys=True, allow_nan=False, default=_json_default)
+            text = json.dumps(meta, allow_nan=False, default=_json_default)
         except (TypeError, ValueError) as exc:
             raise TypeError(f"metadata is not JSON-serialisable: {exc}") from exc
-        out["metadata"] = np.array(text)
-        return out
+        result: dict[str, Any] = json.loads(text)
+        return result
 
     def save(self, path: str | os.PathLike[str], overwrite: bool = False) -> Path:
         """Write the set to ONE ``.npz`` file (no pickle), atomically.

@@ -32,9 +32,13 @@ def unit_quats(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def make_demo(
-    rng: np.random.Generator, n_steps: int, seed: int = 0, action_type: str = "joint"
+    rng: np.random.Generator,
+    n_steps: int,
+    seed: int = 0,
+    action_type: str = "joint",
+    obs_dim: int = OBS_DIM,
 ) -> Demonstration:
-    """Random arrays within the schema's ranges (no simulator)."""
+    """Random arrays within the schema's ranges (no simulator); also used by test_datasets."""
     return Demonstration(
         time=np.arange(n_steps) * 0.05,
         joint_pos=rng.uniform(-2, 2, size=(n_steps, 7)),
@@ -47,7 +51,7 @@ def make_demo(
         object_quat={"cup": unit_quats(rng, n_steps), "machine": unit_quats(rng, n_steps)},
         stages=rng.random((n_steps, 3)) > 0.5,
         actions=rng.uniform(-1, 1, size=(n_steps, ACTION_DIMS[action_type])).astype(np.float32),
-        observations=rng.normal(size=(n_steps, OBS_DIM)).astype(np.float32),
+        observations=rng.normal(size=(n_steps, obs_dim)).astype(np.float32),
         seed=seed,
         success=True,
         action_type=action_type,
