@@ -31,6 +31,8 @@ __all__ = [
     "VIDEO_EVERY",
     "evaluate_policy_stages",
     "format_results",
+    "record_rollout",
+    "summarize",
     "wilson_interval",
     "write_episode_video",
 ]
@@ -65,16 +67,41 @@ def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[f
     return float(ci.low), float(ci.high)
 
 
-def write_episode_video(episode: Episode, path: str | Path, *, fps: float | None = None) -> Path:
+def write_episode_video(
+    episode: Episode, path: str | Path, *, force: bool = False, fps: float | None = None
+) -> Path:
     """Write the frames of an episode rolled out with ``render=True`` (every
-    :data:`VIDEO_EVERY` steps) to an ``.mp4``/``.gif``, holding the last frame a moment."""
+    :data:`VIDEO_EVERY` steps) to an ``.mp4``/``.gif`` (atomically; an existing file only with
+    ``force``), holding the last frame a moment."""
     from gym_coffee.env import CONTROL_DT
     from gym_coffee.video import write_video
 
     if not episode.frames:
         raise ValueError("the episode has no frames (roll it out with render=True)")
     frames = [*episode.frames, *[episode.frames[-1]] * 5]
-    return write_video(path, frames, fps=fps or 1.0 / (VIDEO_EVERY * CONTROL_DT))
+    return write_video(path, frames, fps=fps or 1.0 / (VIDEO_EVERY * CONTROL_DT), overwrite=force)
+
+
+def record_rollout(
+    policy: Any,
+    path: str | Path,
+    seed: int,
+    *,
+    env_id: str = gym_coffee.ENV_ID,
+    env_kwargs: Mapping[str, Any] | None = None,
+    force: bool = True,
+) -> dict[str, Any]:
+    """Roll ``policy`` out on ``reset(seed=seed)`` with rendering and write the video.
+
+    Prefer ``evaluate_policy_stages(..., video=path)``, which records the first layout during
+    the evaluation itself instead of rolling it out a second time.
+
+    Returns:
+        The episode's record plus ``"video"``: the path written.
+    """
+    episode = _first_episode(policy, EnvFactory(env_id, env_kwargs or {}), seed, render=True)
+    written = write_episode_video(episode, path, force=force)
+    return {**episode.record(EVAL_FLAGS), "video": str(written)}
 
 
 def evaluate_policy_stages(
@@ -94,6 +121,7 @@ def evaluate_policy_stages(
     confidence: float = 0.95,
     keep_first: bool = False,
     render_first: bool = False,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Run ``policy`` on ``n_episodes`` held-out layouts and report per-stage success.
 
@@ -120,6 +148,7 @@ def evaluate_policy_stages(
         keep_first: return the first layout's :class:`~lgp_policy.rollout.Episode` (with its
             observations) as ``result["first_episode"]`` (not JSON; pop it before saving).
         render_first: also keep its rendered frames (implied by ``video``).
+        force: replace an existing ``video`` file (checked before any work).
 
     Returns:
         ``{"n_episodes", "seed", "seeds", "workers", "backend", "confidence", "stages": {stage:
@@ -136,6 +165,8 @@ def evaluate_policy_stages(
         from gym_coffee.video import check_video_path
 
         video = check_video_path(video)
+        if video.exists() and not force:
+            raise FileExistsError(f"{video} exists; pass force=True (--force) to replace it")
     factory = env_factory if env_factory is not None else EnvFactory(env_id, env_kwargs or {})
     seeds = [EVAL_SEED_OFFSET + int(seed) + i for i in range(n_episodes)]
     render = render_first or video is not None
@@ -177,7 +208,7 @@ def evaluate_policy_stages(
     )
     result["video"] = None
     if video is not None and first is not None:
-        result["video"] = str(write_episode_video(first, video))
+        result["video"] = str(write_episode_video(first, video, force=force))
     if keep_first:
         result["first_episode"] = first
     return result

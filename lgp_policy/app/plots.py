@@ -186,9 +186,7 @@ def rollout_trace(policy: Any, seed: int, *, env_factory: Any = None) -> dict[st
 
     env = env_factory() if env_factory is not None else gym.make(gym_coffee.ENV_ID)
     try:
-        episode = run_episode(
-            policy, env, seed, flags=tuple(STAGE_LABELS), keep_observations=True
-        )
+        episode = run_episode(policy, env, seed, flags=tuple(STAGE_LABELS), keep_observations=True)
     finally:
         env.close()
     return trace_from_episode(policy, episode)
