@@ -14,7 +14,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import socket
 import sys
+import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -83,18 +86,32 @@ def _run_seeds(policy: Any, env: Any, seeds: Sequence[int], flags: Sequence[str]
     return [run_episode(policy, env, s, flags=flags).record(flags) for s in seeds]
 
 
+def _chunk_result(records: list[dict], cpu_start: float) -> dict[str, Any]:
+    """What a worker sends back for a chunk: the records, and which process spent how many CPU
+    seconds on it (``EpisodeJob.worker_cpu_s``; benchmarks use it)."""
+    return {
+        "records": records,
+        "worker": f"{socket.gethostname()}:{os.getpid()}",
+        "cpu_s": time.process_time() - cpu_start,
+    }
+
+
 # ------------------------------------------------------------------------------ local pool
 _WORKER: dict[str, Any] = {}
 
 
 def _pool_init(policy: Any, env_factory: Callable[..., Any]) -> None:
+    _WORKER["clock"] = 0.0  # a forked worker's CPU clock starts at 0: its set-up counts too
     _WORKER["limiter"] = _limit_threads()
     _WORKER["policy"] = policy
     _WORKER["env"] = env_factory()
 
 
-def _pool_chunk(seeds: Sequence[int], flags: Sequence[str]) -> list[dict]:
-    return _run_seeds(_WORKER["policy"], _WORKER["env"], seeds, flags)
+def _pool_chunk(seeds: Sequence[int], flags: Sequence[str]) -> dict[str, Any]:
+    start = _WORKER.get("clock", time.process_time())
+    out = _chunk_result(_run_seeds(_WORKER["policy"], _WORKER["env"], seeds, flags), start)
+    _WORKER["clock"] = time.process_time()
+    return out
 
 
 def _pool_context() -> Any:
@@ -113,9 +130,11 @@ _RAY_ENV: dict[str, Any] = {}
 
 def _ray_chunk(
     policy: Any, env_factory: Callable[..., Any], seeds: Sequence[int], flags: Sequence[str]
-) -> list[dict]:
+) -> dict[str, Any]:
     """One Ray task: a chunk of episodes on this worker's cached env (made on first use)."""
     from ray import cloudpickle
+
+    start = time.process_time()
 
     key = cloudpickle.dumps(env_factory)
     if _RAY_ENV.get("key") != key:
@@ -124,7 +143,7 @@ def _ray_chunk(
         _RAY_ENV["limiter"] = _limit_threads()
         _RAY_ENV["env"] = env_factory()
         _RAY_ENV["key"] = key
-    return _run_seeds(policy, _RAY_ENV["env"], seeds, flags)
+    return _chunk_result(_run_seeds(policy, _RAY_ENV["env"], seeds, flags), start)
 
 
 def _ray_init(address: str | None, workers: int) -> Any:
@@ -149,10 +168,16 @@ class EpisodeJob:
 
     seeds: list[int]
     _collect: Callable[[], list[dict]]
+    worker_cpu_s: dict[str, float] = field(default_factory=dict)
+    """After :meth:`collect`: CPU seconds each worker process (``host:pid``) spent."""
 
     def collect(self) -> list[dict[str, Any]]:
         """The episodes' records, in the order of ``seeds``."""
-        records = self._collect()
+        records: list[dict] = []
+        for chunk in self._collect():
+            records.extend(chunk["records"])
+            w = chunk["worker"]
+            self.worker_cpu_s[w] = self.worker_cpu_s.get(w, 0.0) + chunk["cpu_s"]
         order = {s: i for i, s in enumerate(self.seeds)}
         return sorted(records, key=lambda r: order[r["seed"]])
 
@@ -220,9 +245,9 @@ def start_episodes(
             while todo:
                 ready, todo = ray.wait(todo, num_returns=1)
                 for ref in ready:
-                    recs = ray.get(ref)
-                    out.extend(recs)
-                    done(len(recs))
+                    chunk = ray.get(ref)
+                    out.append(chunk)
+                    done(len(chunk["records"]))
             return out
 
         return EpisodeJob(seeds, collect_ray)
@@ -235,7 +260,8 @@ def start_episodes(
             try:
                 with _limit_threads():
                     for s in seeds:
-                        out.extend(_run_seeds(policy, env, [s], flags))
+                        start = time.process_time()
+                        out.append(_chunk_result(_run_seeds(policy, env, [s], flags), start))
                         done(1)
             finally:
                 env.close()
@@ -261,9 +287,9 @@ def start_episodes(
             while todo:
                 ready, todo = wait(todo, return_when=FIRST_COMPLETED)
                 for f in ready:
-                    recs = f.result()
-                    out.extend(recs)
-                    done(len(recs))
+                    chunk = f.result()
+                    out.append(chunk)
+                    done(len(chunk["records"]))
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
         return out

@@ -179,6 +179,7 @@ def evaluate_policy_stages(
         bar = tqdm(total=len(seeds), desc="evaluating", unit="episode")
     start = _time.perf_counter()
     first: Episode | None = None
+    worker_cpu_first = 0.0
     try:
         job = start_episodes(
             policy,
@@ -192,10 +193,13 @@ def evaluate_policy_stages(
             on_done=None if bar is None else bar.update,
         )
         if own_first:  # while the workers run the others
+            cpu = _time.process_time()
             first = _first_episode(policy, factory, seeds[0], render)
+            worker_cpu_first = _time.process_time() - cpu
             if bar is not None:
                 bar.update(1)
         episodes = job.collect()
+        worker_cpu = dict(job.worker_cpu_s)
     finally:
         if bar is not None:
             bar.close()
@@ -206,6 +210,8 @@ def evaluate_policy_stages(
     result.update(
         seed=int(seed), seeds=seeds, workers=int(workers), backend=backend, wall_time_s=wall
     )
+    result["worker_cpu_s"] = worker_cpu
+    result["first_episode_cpu_s"] = worker_cpu_first
     result["video"] = None
     if video is not None and first is not None:
         result["video"] = str(write_episode_video(first, video, force=force))

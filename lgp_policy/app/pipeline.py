@@ -167,9 +167,8 @@ def run_pipeline(
                 print(f"      tight: {iv['label']}")
             for c in report["checks"]:
                 status = "ok" if c["tight"] else "NOT tight"
-                print(
-                    f"      {c['stage']} at t {c['phase']:.2f}: {c['expected_frame']} frame {status}"
-                )
+                frame = c["expected_frame"]
+                print(f"      {c['stage']} at t {c['phase']:.2f}: {frame} frame {status}")
 
         with stage("evaluate", f" ({n_episodes} layouts, {workers} worker(s))"):
             result = evaluate_policy_stages(
