@@ -64,11 +64,17 @@ class EnvFactory:
 
 
 def chunk_seeds(seeds: Sequence[int], n_chunks: int) -> list[list[int]]:
-    """Split ``seeds`` into at most ``n_chunks`` contiguous chunks of near-equal size."""
+    """Split ``seeds`` into ``min(n_chunks, len(seeds))`` contiguous chunks whose sizes differ
+    by at most one (so that the workers' shares stay even)."""
     seeds = [int(s) for s in seeds]
     n_chunks = max(1, min(int(n_chunks), len(seeds)))
-    size = math.ceil(len(seeds) / n_chunks)
-    return [seeds[i : i + size] for i in range(0, len(seeds), size)]
+    base, extra = divmod(len(seeds), n_chunks)
+    out, i = [], 0
+    for c in range(n_chunks):
+        size = base + (c < extra)
+        out.append(seeds[i : i + size])
+        i += size
+    return out
 
 
 def _limit_threads() -> Any:

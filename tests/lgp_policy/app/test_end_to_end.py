@@ -19,10 +19,11 @@ from lgp_policy.lfd.policy import GPDemonstrationPolicy
 def _count_episodes(monkeypatch) -> list[int]:
     """Patch the one episode loop wherever it is imported; return the list of seeds rolled out."""
     seeds: list[int] = []
+    real = rollout.run_episode
 
     def counted(policy, env, seed, **kwargs):
         seeds.append(int(seed))
-        return rollout.run_episode(policy, env, seed, **kwargs)
+        return real(policy, env, seed, **kwargs)
 
     for module in (backends, evaluation):
         monkeypatch.setattr(module, "run_episode", counted)

@@ -136,7 +136,8 @@ def test_chunk_seeds_cover_every_seed_once():
         for k in range(1, 6):
             chunks = chunk_seeds(range(n), k)
             assert [s for c in chunks for s in c] == list(range(n))
-            assert len(chunks) <= k and all(chunks)
+            assert len(chunks) == min(n, k) and all(chunks)
+            assert max(map(len, chunks)) - min(map(len, chunks)) <= 1
 
 
 @pytest.mark.parametrize(
