@@ -53,7 +53,6 @@ import io
 import json
 import math
 import os
-import tempfile
 import time as _time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -63,6 +62,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, parse_json, read_npz
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
 from lgp_policy.lfd.reproduction import (
@@ -102,7 +102,7 @@ FILTER_WINDOW = 25.0
 JUMP_GATE = 4.0
 
 
-class PolicyFileError(ValueError):
+class PolicyFileError(FileFormatError):
     """A policy file is missing, malformed or of an unsupported version."""
 
 
@@ -213,15 +213,19 @@ def _integer(name: str, value: Any, low: int, high: int) -> int:
 
 def hand_points(
     robot: Any, q: NDArray[np.float64], offset: float | None
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """The task vector of a batch ``q (n, k)``: the grasp point ``(n, d)``, or with ``offset`` the
-    grasp point and a point ``offset`` behind it on the hand's approach (last) axis ``(n, 2d)``;
-    and, when the robot has ``pose_and_jacobian`` or ``jacobian``, its Jacobian ``(n, p, k)``.
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The task vector of ``q (k,)`` or a batch ``(n, k)``: the grasp point ``(n, d)``, or with
+    ``offset`` the grasp point and a point ``offset`` behind it on the hand's approach (last) axis
+    ``(n, 2d)``; and its Jacobian ``(n, p, k)`` (unbatched for one ``q``).
 
     With ``p`` the grasp point, ``z`` the approach axis and ``omega_i`` the angular-velocity
     column ``i`` of the geometric Jacobian: ``d(p - offset z)/dq_i = J_p[:, i] - offset
     (omega_i x z)``.
     """
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        x, J = hand_points(robot, q[None], offset)
+        return x[0], J[0]
     both = getattr(robot, "pose_and_jacobian", None)
     if both is not None:
         p, R, J6 = both(q)
@@ -811,6 +815,8 @@ class GPDemonstrationPolicy:
             )
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+        if path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder, not a policy file")
         metadata = {
             "format": FORMAT_NAME,
             "kind": FORMAT_NAME,
@@ -835,15 +841,7 @@ class GPDemonstrationPolicy:
             arrays[f"mean__{name}"] = self.mean_[name]
             arrays[f"std__{name}"] = self.std_[name]
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_save_npz(path, arrays, force=overwrite)
         return path
 
     @classmethod
@@ -877,9 +875,9 @@ class GPDemonstrationPolicy:
         if "metadata" not in arrays:
             raise PolicyFileError("no 'metadata' entry; not a GPDemonstrationPolicy file")
         try:
-            meta = json.loads(str(arrays["metadata"]))
-        except (json.JSONDecodeError, ValueError) as exc:
-            raise PolicyFileError(f"metadata is not valid JSON ({exc})") from exc
+            meta = parse_json(str(arrays["metadata"]), where="metadata")
+        except FileFormatError as exc:
+            raise PolicyFileError(str(exc)) from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
             found = meta.get("format") if isinstance(meta, dict) else None
             raise PolicyFileError(f"not a GPDemonstrationPolicy file (format {found!r})")
@@ -1001,24 +999,35 @@ class GPDemonstrationPolicy:
         return f"GPDemonstrationPolicy(model={self.model!r}, alpha={self.alpha}{fitted})"
 
 
+_SCHEMA = {
+    "metadata": MemberSpec(dtype="U", ndim=0, max_bytes=16 * 2**20),
+    "phase_grid": MemberSpec(dtype="f", ndim=1, finite=True),
+    "mean__*": MemberSpec(dtype="f", ndim=2, finite=True),
+    "std__*": MemberSpec(dtype="f", ndim=2, finite=True),
+}
+MAX_MEMBER_BYTES = 64 * 2**20
+MAX_FILE_BYTES = 512 * 2**20
+
+
 def _read_policy_npz(path: str | os.PathLike[str] | io.BytesIO) -> tuple[str, dict[str, Any]]:
-    """The arrays of a policy file (only ``allow_pickle=False`` loading; path or in-memory)."""
-    source: Any = path
+    """The arrays of a policy file, through :func:`lgp_policy._io.read_npz` (known members only,
+    sizes checked before decompressing, never unpickled; a path or an in-memory file)."""
     if isinstance(path, io.BytesIO):
         label = "<embedded policy>"
+        source: Any = path
     else:
         source = Path(path)
         label = str(source)
         if not source.exists():
             raise FileNotFoundError(f"no policy file at {source}")
     try:
-        with np.load(source, allow_pickle=False) as data:
-            if not hasattr(data, "files"):
-                raise ValueError("not an .npz archive")
-            known = [
-                k for k in data.files if k in ("metadata", "phase_grid") or k.startswith(("mean__", "std__"))
-            ]
-            arrays = {k: data[k] for k in known}
-    except Exception as exc:
-        raise PolicyFileError(f"{label} is not a readable .npz policy file: {exc}") from exc
+        arrays = read_npz(
+            source,
+            schema=_SCHEMA,
+            max_member_bytes=MAX_MEMBER_BYTES,
+            max_total_bytes=MAX_FILE_BYTES,
+            max_entries=1000,
+        )
+    except FileFormatError as exc:
+        raise PolicyFileError(f"{label} is not a readable policy file: {exc}") from None
     return label, arrays
