@@ -9,9 +9,19 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.utils import EzPickle
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
+from gym_coffee._checks import check_bool, check_choice, check_int, check_vector
 from gym_coffee.kinematics import PandaKinematics
-from gym_coffee.robot import GRIPPER_MAX_OPENING, NEUTRAL_JOINTS, Panda
+from gym_coffee.robot import (
+    ACTION_TYPES,
+    GRIPPER_MAX_OPENING,
+    MAX_EE_ROT_STEP,
+    MAX_EE_STEP,
+    MAX_JOINT_STEP,
+    NEUTRAL_JOINTS,
+    Panda,
+)
 from gym_coffee.scene import (
     BUTTON_PRESS_TRAVEL,
     CUP_HEIGHT,
@@ -49,6 +59,8 @@ CONTROL_DT = PHYSICS_DT * N_SUBSTEPS
 MAX_EPISODE_STEPS = 400
 #: Uniform noise (rad) added to each joint of the start posture.
 START_JOINT_NOISE = 0.05
+#: Largest rendered image side (pixels) accepted for ``width`` and ``height``.
+MAX_IMAGE_SIDE = 4096
 
 # name, size, (low, high): observations are clipped to these bounds.
 _OBS_LAYOUT = [
@@ -122,10 +134,26 @@ class CoffeeEnv(gym.Env, EzPickle):
     on the machine's front panel.
 
     ## Action Space
-    ``Box(-1, 1, (8,), float32)``. ``a[:7]``: joint-position deltas, joint targets = measured
-    positions + ``a[:7] * MAX_JOINT_STEP`` (0.05 rad per step), clipped to the joint limits;
-    ``a[7]``: absolute gripper opening ``(a[7] + 1) / 2 * 0.08`` m.
-    ``gym_coffee.robot.action_from_targets`` inverts this.
+    ``Box(-1, 1, (n,), float32)``; ``action_type`` picks the mode. In every mode the last value is
+    the absolute gripper opening ``(a[-1] + 1) / 2 * 0.08`` m.
+
+    * ``"joint"`` (default, n = 8): ``a[:7]`` are joint-position deltas, joint targets = measured
+      positions + ``a[:7] * MAX_JOINT_STEP`` (0.05 rad per step), clipped to the joint limits.
+      ``gym_coffee.robot.action_from_targets`` inverts this.
+    * ``"ee"`` (n = 4): ``a[:3] * MAX_EE_STEP`` (0.02 m per step) is a Cartesian displacement of
+      the grasp point (world frame) from its measured position; the hand keeps the orientation it
+      had at reset (gripper down).
+    * ``"ee_rot"`` (n = 7): as ``"ee"``, and ``a[3:6] * MAX_EE_ROT_STEP`` (0.05 rad per step)
+      rotates the commanded hand orientation about the world x, y and z axes (roll, pitch, yaw).
+      The side grasp the task needs is reachable in this mode (or in ``"joint"``), not in
+      ``"ee"``.
+
+    The end-effector modes go through damped-least-squares inverse kinematics of the 6-D pose
+    (:meth:`PandaKinematics.ik_step`, two iterations, null-space pull to the start posture) and
+    then to joint targets (the joint step scaled down as a whole where a joint would move more
+    than ``MAX_JOINT_STEP``, so the hand keeps the commanded direction). Finite values
+    outside [-1, 1] are clipped (Gymnasium's convention); an action of another shape or with NaN
+    or inf raises ``ValueError``.
 
     ## Observation Space
     Flat ``Box(OBS_LOW, OBS_HIGH, (OBS_DIM,), float32)`` (wide finite bounds); ``OBS_SLICES`` names
@@ -171,7 +199,11 @@ class CoffeeEnv(gym.Env, EzPickle):
     ``height``          ``240``     image height for ``"rgb_array"``
     ``render_shadows``  ``False``   draw shadows in ``"rgb_array"`` frames (about 2x the time)
     ``exact_reset``     ``True``    rebuild the physics world at every reset (see below)
+    ``action_type``     ``"joint"`` ``"joint"``, ``"ee"`` or ``"ee_rot"`` (see Action Space)
     ==================  ==========  ===========================================================
+
+    Every argument is checked at construction (``ValueError`` naming it): ``width`` and
+    ``height`` are integers in [1, 4096].
 
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
@@ -211,6 +243,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         height: int = 240,
         render_shadows: bool = False,
         exact_reset: bool = True,
+        action_type: str = "joint",
     ) -> None:
         EzPickle.__init__(
             self,
@@ -220,25 +253,27 @@ class CoffeeEnv(gym.Env, EzPickle):
             height=height,
             render_shadows=render_shadows,
             exact_reset=exact_reset,
+            action_type=action_type,
         )
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(
-                f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}"
-            )
-        if reward_type not in ("dense", "sparse"):
-            raise ValueError(f"reward_type must be 'dense' or 'sparse', got {reward_type!r}")
-        self.render_mode = render_mode
-        self.reward_type = reward_type
-        self.width, self.height = int(width), int(height)
-        self.render_shadows = bool(render_shadows)
-        self.exact_reset = bool(exact_reset)
+        # Every argument is checked before the physics server starts.
+        self.render_mode = check_choice(
+            "render_mode", render_mode, [None, *self.metadata["render_modes"]]
+        )
+        self.reward_type = check_choice("reward_type", reward_type, ["dense", "sparse"])
+        self.width = check_int("width", width, 1, MAX_IMAGE_SIDE)
+        self.height = check_int("height", height, 1, MAX_IMAGE_SIDE)
+        self.render_shadows = check_bool("render_shadows", render_shadows)
+        self.exact_reset = check_bool("exact_reset", exact_reset)
+        self.action_type = check_choice("action_type", action_type, list(ACTION_TYPES))
 
         self.sim = Simulation(render_mode, timestep=PHYSICS_DT, n_substeps=N_SUBSTEPS)
         self.robot = Panda(self.sim)
         self.scene = CoffeeScene(self.sim)
         self._load()
 
-        self.action_space = spaces.Box(-1.0, 1.0, (8,), dtype=np.float32)
+        self.action_space = spaces.Box(
+            -1.0, 1.0, (ACTION_TYPES[self.action_type],), dtype=np.float32
+        )
         self.observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
 
         self._n_steps = 0
@@ -247,6 +282,8 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._pressed = False
         self._stage = 0
         self._pressed_with_cup = False
+        self._rest_posture = NEUTRAL_JOINTS.copy()
+        self._hand_rotation = np.eye(3)  # commanded hand orientation (end-effector modes)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -284,6 +321,8 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._pressed = False
         self._stage = 0
         self._pressed_with_cup = False
+        self._rest_posture = q0.copy()
+        self._hand_rotation = self.kinematics.forward_pose(self.robot.joint_states()[0])[1]
         obs = self._get_obs()
         info = self._evaluate()[0]
         if self.render_mode == "human":
@@ -293,7 +332,8 @@ class CoffeeEnv(gym.Env, EzPickle):
     def step(
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
-        self.robot.set_action(action)
+        q_target, opening = self._targets(self._check_action(action))
+        self.robot.command(q_target, opening)
         self.scene.apply_spring()
         self.sim.step()
         self._n_steps += 1
@@ -323,6 +363,32 @@ class CoffeeEnv(gym.Env, EzPickle):
             self.sim.close()
 
     # ------------------------------------------------------------------ internals
+    def _check_action(self, action: Any) -> NDArray[np.float64]:
+        """The action as float64, clipped to [-1, 1]; ValueError for a wrong shape or NaN/inf."""
+        size = ACTION_TYPES[self.action_type]
+        array = check_vector(f"action (action_type={self.action_type!r})", action, (size,))
+        return np.clip(array, -1.0, 1.0)
+
+    def _targets(self, action: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        """Joint targets (7,) and gripper opening (m) for an action of the env's ``action_type``."""
+        q, _ = self.robot.joint_states()
+        opening = (action[-1] + 1.0) / 2.0 * GRIPPER_MAX_OPENING
+        if self.action_type == "joint":
+            return self.robot.joint_targets(q, action), opening
+        position = self.kinematics.forward_kinematics(q) + action[:3] * MAX_EE_STEP
+        if self.action_type == "ee_rot":
+            turn = Rotation.from_euler("xyz", action[3:6] * MAX_EE_ROT_STEP).as_matrix()
+            self._hand_rotation = turn @ self._hand_rotation
+        q_target = self.kinematics.ik_step(
+            q,
+            position,
+            self._hand_rotation,
+            self._rest_posture,
+            max_step=MAX_JOINT_STEP,
+            keep_direction=True,
+        )
+        return q_target, opening
+
     def _load(self) -> None:
         """Load robot and scene into the (new) physics server."""
         self.robot.load()

@@ -284,25 +284,14 @@ class ScriptedTeacher:
     def _ik_step(
         self, q: NDArray[np.float64], pos_d: NDArray[np.float64], rot_d: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        """Joint targets that move the hand towards the desired pose (one damped-least-squares
-        step)."""
-        kin = self.kinematics
-        q_target = q.copy()
-        for _ in range(2):
-            pos, rot = kin.forward_pose(q_target)
-            err_p = pos_d - pos
-            err_o = 0.5 * (
-                np.cross(rot[:, 0], rot_d[:, 0])
-                + np.cross(rot[:, 1], rot_d[:, 1])
-                + np.cross(rot[:, 2], rot_d[:, 2])
-            )
-            jac = kin.jacobian(q_target)
-            jac[3:] *= ORIENTATION_WEIGHT
-            err = np.concatenate([err_p, ORIENTATION_WEIGHT * err_o])
-            jjt = jac @ jac.T + IK_DAMPING**2 * np.eye(6)
-            dq = jac.T @ np.linalg.solve(jjt, err)
-            pinv = jac.T @ np.linalg.solve(jjt, jac)
-            dq += (np.eye(7) - pinv) @ (NULL_SPACE_GAIN * (REST_POSTURE - q_target))
-            q_target = q_target + dq
-        step = np.clip(q_target - q, -MAX_JOINT_STEP, MAX_JOINT_STEP)
-        return np.clip(q + step, kin.joint_lower, kin.joint_upper)
+        """Joint targets that move the hand towards the desired pose (damped least squares)."""
+        return self.kinematics.ik_step(
+            q,
+            pos_d,
+            rot_d,
+            REST_POSTURE,
+            max_step=MAX_JOINT_STEP,
+            damping=IK_DAMPING,
+            orientation_weight=ORIENTATION_WEIGHT,
+            null_space_gain=NULL_SPACE_GAIN,
+        )
