@@ -83,14 +83,14 @@ PERTURBATIONS: dict[str, dict[str, Any]] = {
     "cup_push": {"cup_push": (0.03, 0.05)},
     "obs_noise_5mm": {"obs_noise": 0.005},
     "calib_2mm": {"calibration_bias": 0.002},
-    "actuation": {"actuation_noise": 0.1},
+    "actuation": {"actuation_noise": 0.01},
 }
 PERTURBATION_LABELS = {
     "none": "none",
     "cup_push": "cup pushed 3-5 cm",
     "obs_noise_5mm": "obs. noise 5 mm",
     "calib_2mm": "calib. bias 2 mm",
-    "actuation": "actuation noise 0.1",
+    "actuation": "actuation noise 0.01 rad",
 }
 
 
@@ -166,6 +166,8 @@ def plan(
     perturbations: Sequence[str],
     targets: bool = True,
     coverage: bool = True,
+    target_episodes: int = TARGET_EPISODES,
+    coverage_episodes: int = COVERAGE_EPISODES,
 ) -> dict[Cell, int]:
     """Cells to run and their episodes (targets first, in insertion order)."""
     cells: dict[Cell, int] = {}
@@ -184,14 +186,14 @@ def plan(
             add(m, level_names[0], "none", 2, range(COVERAGE_DRAWS), 2)
         return cells
     if targets:
-        t = TARGET_EPISODES
+        t = target_episodes
         add("gp", "hard", "none", 8, range(3), t)
         add("objrel", "hard", "none", 1, range(3), t)
         add("gp", "easy", "none", 4, range(5), t)
         add("gp", "easy", "cup_push", 4, range(3), t)
         add("gp", "easy", "obs_noise_5mm", 4, range(3), t)
     if coverage:
-        c = COVERAGE_EPISODES
+        c = coverage_episodes
         for level in level_names:
             for n in N_DEMOS:
                 for m in methods:
@@ -557,6 +559,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--levels", default=None, help="comma-separated (default: every level)")
     ap.add_argument("--perturbations", default=",".join(PERTURBATIONS), help="comma-separated")
     ap.add_argument("--part", choices=("all", "targets", "coverage"), default="all")
+    ap.add_argument("--target-episodes", type=int, default=TARGET_EPISODES, help="per draw")
+    ap.add_argument("--coverage-episodes", type=int, default=COVERAGE_EPISODES, help="per draw")
     ap.add_argument("--jobs", type=int, default=1, help="processes running fit+evaluate units")
     ap.add_argument("--workers", type=int, default=1, help="env processes per evaluation")
     ap.add_argument("--max-units", type=int, default=None, help="stop after this many units")
@@ -573,8 +577,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     level_names = list(known_levels) if args.levels is None else args.levels.split(",")
     if set(level_names) - set(known_levels):
         ap.error(f"--levels: this gym_coffee has {list(known_levels)}")
-    if args.jobs < 1 or args.workers < 1:
-        ap.error("--jobs and --workers must be >= 1")
+    if min(args.jobs, args.workers, args.target_episodes, args.coverage_episodes) < 1:
+        ap.error("--jobs, --workers, --target-episodes and --coverage-episodes must be >= 1")
 
     out: Path = args.out
     rows = load_results(out) if (args.resume or args.report) else {}
@@ -600,6 +604,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         perturbations=perts,
         targets=args.part in ("all", "targets"),
         coverage=args.part in ("all", "coverage"),
+        target_episodes=args.target_episodes,
+        coverage_episodes=args.coverage_episodes,
     )
     todo = {c: e for c, e in cells.items() if rows.get(c.key, {}).get("episodes", -1) < e}
     if "hard" not in known_levels:
