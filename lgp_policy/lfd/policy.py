@@ -71,7 +71,6 @@ from lgp_policy.lfd.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
-    MIN_VARIANCE,
     frame_targets,
     limit_step,
     reproduction_step,
@@ -205,12 +204,18 @@ def _finite(name: str, value: Any, low: float, high: float, *, low_open: bool = 
     ok = math.isfinite(v) and (v > low if low_open else v >= low) and v <= high
     if not ok or isinstance(value, bool):
         bracket = "(" if low_open else "["
-        raise ValueError(f"{name} must be a finite number in {bracket}{low}, {high}], got {value!r}")
+        raise ValueError(
+            f"{name} must be a finite number in {bracket}{low}, {high}], got {value!r}"
+        )
     return v
 
 
 def _integer(name: str, value: Any, low: int, high: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not low <= value <= high
+    ):
         raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
     return int(value)
 
@@ -272,9 +277,8 @@ class GPDemonstrationPolicy:
     Args (keyword-only after ``robot`` and ``adapter``):
 
     =============== ===================================================================
-    robot           kinematics (:class:`~lgp_policy.lfd.robots.RobotModel`); default
-                    ``adapter.robot``
-    adapter         how observations are read (:class:`~lgp_policy.lfd.adapters.ObservationAdapter`);
+    robot           kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
+    adapter         how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
                     default the gym-coffee adapter
     n_steps         ``T``, resampled points per demonstration (encoding), >= 2
     n_grid          points of the precomputed phase table used by ``predict``, >= 2
@@ -399,8 +403,10 @@ class GPDemonstrationPolicy:
         self.adapter_ = self.adapter if self.adapter is not None else _coffee_adapter()
         self.robot_ = self.robot if self.robot is not None else self.adapter_.robot
         self.gripper_ = getattr(self.adapter_, "gripper", None)
-        step = getattr(self.adapter_.action_map, "max_step", None)
-        self.max_joint_step_ = float(self.max_joint_step if self.max_joint_step is not None else step)
+        step = self.max_joint_step
+        self.max_joint_step_ = float(
+            step if step is not None else self.adapter_.action_map.max_step
+        )
 
     def _trajectories(self, demos: Any) -> TrajectorySet:
         if isinstance(demos, TrajectorySet):
@@ -466,13 +472,15 @@ class GPDemonstrationPolicy:
         for n in names:
             d = trajs[0].frames[n][0].shape[1]
             if d != robot.dim:
-                raise ValueError(f"frame {n!r} is {d}-D but the robot's task space is {robot.dim}-D")
+                raise ValueError(
+                    f"frame {n!r} is {d}-D but the robot's task space is {robot.dim}-D"
+                )
         offset = self.approach_offset
         if offset == "auto":
             offset = 0.1 if robot.has_orientation else None
         elif offset is not None and not robot.has_orientation:
             raise ValueError("approach_offset needs a robot with a hand orientation; use None")
-        self.approach_offset_ = offset
+        self.approach_offset_: float | None = offset  # type: ignore[assignment]
         if (self.gripper_ is None) != (trajs[0].gripper is None):
             raise ValueError(
                 "the demonstrations and the adapter disagree on the gripper: "
@@ -484,7 +492,11 @@ class GPDemonstrationPolicy:
             tr.state if tr.gripper is None else np.column_stack([tr.state, tr.gripper])
             for tr in trajs
         ]
-        ees = [hand_points(robot, tr.state, offset)[0] for tr in trajs] if names else None
+        ees = (
+            [hand_points(robot, tr.state, self.approach_offset_)[0] for tr in trajs]
+            if names
+            else None
+        )
         frames = [{n: tr.initial_frames()[n] for n in names} for tr in trajs] if names else None
         kwargs = dict(self.encoder_kwargs or {})
         kwargs.setdefault("n_steps", self.n_steps)
@@ -627,12 +639,14 @@ class GPDemonstrationPolicy:
             for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
                 reached = np.where(fresh, False, state.reached.get(j, np.zeros(n, bool)))
                 due = ~reached & (s >= s_l - lead)
-                if np.any(due):
+                if np.any(due) and hand is not None:
                     mcol, vcol = self._cols[frame]
                     row = self._rows(np.full(n, s_l))
                     d = hand.shape[1]
                     target, _ = frame_targets(
-                        state.position[frame], state.rotation[frame], row[:, mcol][:, :d],
+                        state.position[frame],
+                        state.rotation[frame],
+                        row[:, mcol][:, :d],
                         row[:, vcol][:, :d],
                     )
                     # a frame that is loose there (demonstrations disagree) asks for no precision
@@ -749,7 +763,9 @@ class GPDemonstrationPolicy:
             for name in self.frame_names_[1:]:
                 mcol, vcol = self._cols[name]
                 targets.append(
-                    frame_targets(mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol])
+                    frame_targets(
+                        mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol]
+                    )
                 )
         dq, fused = reproduction_step(
             q,
@@ -984,7 +1000,9 @@ class GPDemonstrationPolicy:
             or not all(isinstance(n, str) for n in names)
             or len(set(names)) != len(names)
         ):
-            raise PolicyFileError(f"frame_names must be distinct names starting with {JOINT_FRAME!r}")
+            raise PolicyFileError(
+                f"frame_names must be distinct names starting with {JOINT_FRAME!r}"
+            )
         known = tuple(getattr(policy.adapter_, "frame_names", ()))
         unknown = [n for n in names[1:] if n not in known]
         if unknown:
@@ -1010,7 +1028,8 @@ class GPDemonstrationPolicy:
             raise PolicyFileError("'phase_grid' must be an increasing 1-D float array in [0, 1]")
         k = policy.robot_.n_joints + (policy.gripper_ is not None)
         d = policy.robot_.dim * (2 if offset is not None else 1)
-        mean, std = {}, {}
+        mean: dict[str, NDArray[np.float64]] = {}
+        std: dict[str, NDArray[np.float64]] = {}
         for name in names:
             want = k if name == JOINT_FRAME else d
             for kind, store in (("mean", mean), ("std", std)):

@@ -147,9 +147,13 @@ class ArrayAdapter:
         for fname, (pos, rot) in dict(frames).items():
             d = len(range(*pos.indices(obs_dim)))
             if d != robot.dim:
-                raise ValueError(f"frame {fname!r}: position slice has {d} entries, need {robot.dim}")
+                raise ValueError(
+                    f"frame {fname!r}: position slice has {d} entries, need {robot.dim}"
+                )
             if rot is not None and len(range(*rot.indices(obs_dim))) not in (1, 4):
-                raise ValueError(f"frame {fname!r}: rotation slice must hold an angle or a quaternion")
+                raise ValueError(
+                    f"frame {fname!r}: rotation slice must hold an angle or a quaternion"
+                )
             self._frames[fname] = (pos, rot)
         self.frame_names = tuple(sorted(self._frames))
         self._events = dict(events or {})
@@ -184,7 +188,9 @@ class ArrayAdapter:
         )
 
     def __repr__(self) -> str:
-        return f"ArrayAdapter(name={self.name!r}, obs_dim={self.obs_dim}, frames={self.frame_names})"
+        return (
+            f"ArrayAdapter(name={self.name!r}, obs_dim={self.obs_dim}, frames={self.frame_names})"
+        )
 
 
 def _describe(adapter: Any) -> str:
