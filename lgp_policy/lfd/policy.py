@@ -247,8 +247,12 @@ def hand_points(
         return p, Jp
     z = R[:, :, -1]
     Jw = J6[:, d:]  # (n, 3, k)
-    cross = np.cross(np.swapaxes(Jw, 1, 2), z[:, None, :])  # omega_i x z, (n, k, 3)
-    J2 = Jp - offset * np.swapaxes(cross, 1, 2)
+    zx, zy, zz = z[:, 0:1], z[:, 1:2], z[:, 2:3]  # omega_i x z for every column i, (n, 3, k)
+    cross = np.stack(
+        [Jw[:, 1] * zz - Jw[:, 2] * zy, Jw[:, 2] * zx - Jw[:, 0] * zz, Jw[:, 0] * zy - Jw[:, 1] * zx],
+        axis=1,
+    )
+    J2 = Jp - offset * cross
     return np.concatenate([p, p - offset * z], axis=1), np.concatenate([Jp, J2], axis=1)
 
 
