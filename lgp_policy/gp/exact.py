@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import scipy.linalg
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy.gp._base import ParamsMixin
+from lgp_policy.gp._threads import with_single_blas_thread
 from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
 from lgp_policy.gp.kernels import Kernel, SquaredExponential, WhiteNoise
 
@@ -239,7 +240,7 @@ class _Replicates:
         np.add.at(self.scatter, self.inverse, resid**2)
 
 
-class GaussianProcess:
+class GaussianProcess(ParamsMixin):
     """Exact GP regression, ``y = f(x) + eps`` with ``f ~ GP(0, k)`` (Eqs. 1, 2, 4).
 
     Args:
@@ -299,6 +300,7 @@ class GaussianProcess:
         self.random_state = random_state
 
     # ------------------------------------------------------------------ fitting
+    @with_single_blas_thread
     def fit(self, X: ArrayLike, y: ArrayLike) -> GaussianProcess:
         """Fit to ``X (n_samples, n_features)``, ``y (n_samples,)`` or ``(n_samples, n_targets)``.
 
@@ -556,6 +558,7 @@ class GaussianProcess:
     def _out(self, a: NDArray[np.float64]) -> NDArray[np.float64]:
         return a[:, 0] if self._single_target else a
 
+    @with_single_blas_thread
     def predict(self, X: ArrayLike, return_std: bool = False):
         """Predictive mean (and std **including** the noise, like sklearn with a WhiteKernel).
 
@@ -571,6 +574,7 @@ class GaussianProcess:
         std = np.sqrt(var_f + self._noise_level)[:, None] * self._y_std
         return mean, self._out(std)
 
+    @with_single_blas_thread
     def predict_latent(self, X: ArrayLike):
         """Mean and noise-free standard deviation of the latent ``f(X)``: ``(mean, std_f)``."""
         self._check_fitted()
@@ -593,15 +597,3 @@ class GaussianProcess:
     def _check_fitted(self) -> None:
         if not hasattr(self, "alpha_"):
             raise ValueError(f"This {type(self).__name__} is not fitted yet; call fit(X, y) first")
-
-    def get_params(self, deep: bool = False) -> dict[str, Any]:
-        return {
-            "kernel": self.kernel,
-            "optimizer": self.optimizer,
-            "n_restarts": self.n_restarts,
-            "normalize_y": self.normalize_y,
-            "alpha": self.alpha,
-            "collapse_replicates": self.collapse_replicates,
-            "max_iter": self.max_iter,
-            "random_state": self.random_state,
-        }
