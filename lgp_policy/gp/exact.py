@@ -29,12 +29,20 @@ from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
 from lgp_policy.gp.kernels import Kernel, SquaredExponential, WhiteNoise
 
 __all__ = [
+    "MAX_EXACT_INPUTS",
     "GaussianProcess",
     "NotPositiveDefiniteError",
     "default_kernel",
     "fit_shared_hyperparameters",
     "maximize_lml",
 ]
+
+#: Most distinct training inputs the exact GP accepts. Learning holds about seven dense
+#: ``n x n`` float64 matrices at once (K_y, its Cholesky factor and inverse, dLML/dK, the cached
+#: distances and two kernel gradients): 7 * 8 * n^2 bytes, 3.6 GB at n = 8000 and 9 GB at
+#: n = 12 700, and each likelihood evaluation costs O(n^3). Replicated inputs are collapsed first
+#: and cost nothing. Larger data sets: :class:`lgp_policy.gp.local.LocalGP`.
+MAX_EXACT_INPUTS = 8000
 
 #: Relative jitter (times the mean diagonal of K_y) tried, in order, when Cholesky fails.
 JITTER_STEPS = (0.0, 1e-10, 1e-9, 1e-8, 1e-7, 1e-6)
@@ -339,6 +347,15 @@ class GaussianProcess(ParamsMixin):
         else:
             a_u = alpha.copy()
         self._alpha_u = a_u
+        n_inputs = self._data.X.shape[0]
+        if n_inputs > MAX_EXACT_INPUTS:
+            gb = 7 * 8 * n_inputs**2 / 1e9
+            raise ValueError(
+                f"X has {n_inputs} distinct inputs; the exact GaussianProcess is limited to "
+                f"{MAX_EXACT_INPUTS} (it would hold ~{gb:.0f} GB of n x n matrices and cost "
+                "O(n^3) per likelihood evaluation). Use lgp_policy.gp.local.LocalGP, which "
+                "splits the data into local models of bounded size."
+            )
 
         self.kernel_ = kernel
         self.n_lml_evaluations_ = 0
