@@ -303,6 +303,7 @@ def residual_warm(files: dict[str, Any]) -> None:
         pass
 
 
+@pending("resid")
 @FUZZ
 @given(data=st.data())
 def test_residual_loader(files: dict[str, Any], residual_warm: None, data: st.DataObject) -> None:
