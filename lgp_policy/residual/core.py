@@ -77,7 +77,6 @@ __all__ = [
     "gate_from_config",
     "gp_policy_kind",
     "load_any_policy",
-    "press_reward",
     "register_policy_kind",
     "require_rl",
     "zero_init_residual_actor",
@@ -401,8 +400,7 @@ class ResidualWrapper(gym.Wrapper):
             ``info["env_steps"]`` counts them, so env-step budgets stay honest. Off by default
             (one agent step = one env step).
         reward_fn: ``reward_fn(env_reward, info, previous_info) -> float``, the agent's reward
-            per env step (default: the env's reward). :func:`press_reward` is the one used for
-            the coffee task.
+            per env step (default: the env's reward).
 
     ``info`` gains ``env_steps``, ``residual_gate`` (the gate of the action just applied) and
     ``base_action``.
@@ -550,25 +548,6 @@ def _agent_observation_space(
         lows.append(np.zeros(1, np.float32))
         highs.append(np.ones(1, np.float32))
     return spaces.Box(np.concatenate(lows), np.concatenate(highs), dtype=np.float32)
-
-
-def press_reward(reward: float, info: Mapping[str, Any], previous_info: Mapping[str, Any]) -> float:
-    """The coffee env's dense reward with its stage bonus paid once, on reaching a stage.
-
-    The env pays ``reward_stage`` = 1 per stage reached *every step* (2 while the cup stands
-    placed), and success ends the episode. With a discount of 0.98 an agent that keeps the cup
-    placed without pressing expects about 2 / (1 - 0.98) = 100, more than the +13 of pressing
-    (success bonus 10 + stage 3, then the episode ends): the per-step bonus teaches the residual
-    *not* to press. Here the stage term is ``STAGE_BONUS * (stage - previous stage)`` (+1 on
-    reaching a stage, -1 on losing one, e.g. knocking the placed cup away); all other terms
-    (``reach``, ``carry``, ``press``, ``success``, ``failure``) are the env's. Falls back to the
-    env's reward if the ``info`` has no reward terms.
-    """
-    if "reward_stage" not in info or "stage" not in info:
-        return float(reward)
-    bonus = float(info["reward_stage"]) / max(int(info["stage"]), 1) if info["stage"] else 1.0
-    delta = int(info["stage"]) - int(previous_info.get("stage", 0))
-    return float(reward) - float(info["reward_stage"]) + bonus * delta
 
 
 # --------------------------------------------------------------------------------------------
@@ -1492,7 +1471,7 @@ def finetune(
     residual_dims: Sequence[int] | None = None,
     include_gate_obs: bool = True,
     skip_ungated: bool = True,
-    reward_fn: Callable[[float, Mapping[str, Any], Mapping[str, Any]], float] | None = press_reward,
+    reward_fn: Callable[[float, Mapping[str, Any], Mapping[str, Any]], float] | None = None,
     normalize_obs: bool = True,
     n_envs: int = 1,
     hyperparameters: Mapping[str, Any] | None = None,
@@ -1529,8 +1508,9 @@ def finetune(
         normalize_obs: wrap the training envs in SB3's ``VecNormalize`` (observations only;
             the agent observation mixes seconds, radians, metres and a 0-8 mm button travel);
             its statistics are frozen into the returned policy and saved with it.
-        reward_fn: the agent's reward per env step (default :func:`press_reward`, which is the
-            env's reward for envs without the coffee task's reward terms).
+        reward_fn: ``reward_fn(env_reward, info, previous_info)``, the agent's reward per env
+            step (default: the env's own reward; the coffee env's dense reward pays its stage
+            bonus once per stage change, +1 on reaching a stage and -1 on losing one).
 
     Returns:
         :class:`FinetuneResult` with the policy, the curve and the step counts.

@@ -531,22 +531,65 @@ def test_gp_policy_kind_is_read_from_the_gp_policy_module():
     assert gp_policy_kind() == FORMAT_NAME
 
 
-def test_press_reward_pays_the_stage_bonus_once():
-    from lgp_policy.residual.core import press_reward
+def _fine_tuning_env_rollout(seed, knock_at_stage=None):
+    """Agent rewards and env infos of a scripted-teacher episode in the fine-tuning wrapper,
+    with the reward :func:`finetune` trains on by default; optionally the placed cup is knocked
+    8 cm off its place the step after ``info["stage"]`` first reaches ``knock_at_stage``."""
+    import inspect
 
-    def info(stage, **terms):
-        out = {"stage": stage, "reward_stage": float(stage)}
-        out.update({f"reward_{k}": v for k, v in terms.items()})
-        return out
+    import gym_coffee
+    from gym_coffee.env import OBS_SLICES
+    from lgp_policy.residual.core import TeacherBase, finetune
 
-    placed = info(2, press=-0.05)
-    env_reward = sum(v for k, v in placed.items() if k.startswith("reward_"))
-    assert press_reward(env_reward, placed, info(1)) == pytest.approx(-0.05 + 1.0)
-    assert press_reward(env_reward, placed, placed) == pytest.approx(-0.05)  # no per-step bonus
-    done = info(3, press=0.9, success=10.0)
-    assert press_reward(13.9, done, placed) == pytest.approx(0.9 + 10.0 + 1.0)
-    assert press_reward(0.9, info(1, carry=-0.1), placed) == pytest.approx(-0.1 - 1.0)
-    assert press_reward(-3.5, {}, {}) == -3.5  # envs without these terms keep their reward
+    reward_fn = inspect.signature(finetune).parameters["reward_fn"].default
+    env = ResidualWrapper(
+        gym.make(gym_coffee.ENV_ID),
+        TeacherBase(),
+        gate=PhaseGate(start=0.0, ramp=0.0, source="observation", time_index=0),
+        residual_dims=range(7),
+        reward_fn=reward_fn,
+    )
+    assert OBS_SLICES["time"].start == 0
+    env.reset(seed=seed)
+    steps, knocked, done = [], False, False
+    while not done:
+        _, reward, terminated, truncated, info = env.step(np.zeros(7, np.float32))
+        steps.append((reward, info))
+        done = terminated or truncated
+        if knock_at_stage is not None and not knocked and info["stage"] == knock_at_stage:
+            sim = env.unwrapped.sim
+            pos, quat = sim.get_base_pose("cup")
+            sim.set_base_pose("cup", pos + np.array([0.0, -0.08, 0.0]), quat)
+            knocked = True
+    env.close()
+    return steps
+
+
+def test_fine_tuning_reward_pays_each_stage_change_once_from_real_env_steps():
+    """Reaching a stage pays +1 once, losing one (the placed cup knocked away) costs 1.
+
+    The env pays its stage bonus only on a stage change; the reward the residual trains on must
+    keep that meaning (an earlier reward divided it by the stage again and paid +1 for losing
+    a stage).
+    """
+    from gym_coffee.env import STAGE_BONUS
+
+    for knock in (None, 2):
+        steps = _fine_tuning_env_rollout(seed=4, knock_at_stage=knock)
+        stage_terms, previous = [], 0
+        for reward, info in steps:
+            terms = {k: v for k, v in info.items() if k.startswith("reward_")}
+            stage_term = reward - (sum(terms.values()) - terms["reward_stage"])
+            assert stage_term == pytest.approx(STAGE_BONUS * (info["stage"] - previous), abs=1e-9)
+            if info["stage"] != previous:
+                stage_terms.append((previous, info["stage"], round(stage_term, 9)))
+            previous = info["stage"]
+        if knock is None:  # the teacher succeeds: grasp, place, press, each paid +1
+            assert stage_terms == [(0, 1, 1.0), (1, 2, 1.0), (2, 3, 1.0)]
+            assert steps[-1][1]["is_success"]
+        else:  # placed, then knocked away: the lost stage costs what reaching it paid
+            assert stage_terms[:3] == [(0, 1, 1.0), (1, 2, 1.0), (2, 1, -1.0)]
+            assert not steps[-1][1]["is_success"]
 
 
 def test_machine_pose_error_shifts_only_the_observed_machine_position():
