@@ -208,7 +208,6 @@ def test_read_npz_with_schema(files: dict[str, Any], data: st.DataObject) -> Non
 
 
 # ----------------------------------------------------------------------------- the loaders
-@pending("lfd")
 @FUZZ
 @given(data=st.data())
 def test_gp_policy_loader(files: dict[str, Any], data: st.DataObject) -> None:
@@ -216,7 +215,6 @@ def test_gp_policy_loader(files: dict[str, Any], data: st.DataObject) -> None:
     _check(_gp_policy, data.draw(mutations(base)), _valid_policy)
 
 
-@pending("data")
 @FUZZ
 @given(data=st.data())
 def test_demonstration_loader(files: dict[str, Any], data: st.DataObject) -> None:
