@@ -32,6 +32,7 @@ __all__ = [
     "add_backend_arguments",
     "check_backend",
     "chunk_seeds",
+    "map_tasks",
     "start_episodes",
 ]
 
@@ -307,6 +308,37 @@ def _chunks(seeds: list[int], n_workers: int, chunk_size: int | None) -> list[li
     if chunk_size is not None:
         return chunk_seeds(seeds, math.ceil(len(seeds) / chunk_size))
     return chunk_seeds(seeds, CHUNKS_PER_WORKER * n_workers)
+
+
+def map_tasks(
+    fn: Callable[[Any], Any],
+    items: Sequence[Any],
+    *,
+    backend: str = "local",
+    address: str | None = None,
+    workers: int = 1,
+    num_cpus: float = 1,
+) -> list[Any]:
+    """``[fn(item) for item in items]``, run where ``backend`` says, results in item order.
+
+    For coarse jobs that are not episodes (e.g. one residual fine-tuning per seed): ``"local"``
+    runs them here (``workers=1``) or in ``workers`` forked processes; ``"ray"`` runs each as
+    a Ray task asking for ``num_cpus`` CPUs (``ray.init(address=address)`` unless Ray is already
+    initialised; see :func:`start_episodes`). ``fn`` and the items must be picklable for
+    anything but the serial local case.
+    """
+    check_backend(backend, workers)
+    items = list(items)
+    if backend == "ray":
+        ray = _ray_init(address, workers)
+        remote = ray.remote(num_cpus=num_cpus)(fn)
+        return list(ray.get([remote.remote(item) for item in items]))
+    if workers == 1 or len(items) <= 1:
+        return [fn(item) for item in items]
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(items)), mp_context=_pool_context(), initializer=_limit_threads
+    ) as pool:
+        return list(pool.map(fn, items))
 
 
 def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
