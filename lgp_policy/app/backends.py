@@ -18,8 +18,9 @@ import os
 import socket
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,6 +34,7 @@ __all__ = [
     "check_backend",
     "chunk_seeds",
     "map_tasks",
+    "one_thread",
     "start_episodes",
 ]
 
@@ -79,7 +81,7 @@ def chunk_seeds(seeds: Sequence[int], n_chunks: int) -> list[list[int]]:
 
 
 def _limit_threads() -> Any:
-    """One BLAS (and torch) thread in this process; returns the threadpoolctl limiter."""
+    """One BLAS (and torch) thread in this worker process; returns the threadpoolctl limiter."""
     from threadpoolctl import threadpool_limits
 
     limiter = threadpool_limits(limits=1, user_api="blas")
@@ -87,6 +89,20 @@ def _limit_threads() -> Any:
     if torch is not None:
         torch.set_num_threads(1)
     return limiter
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """One BLAS (and torch) thread for the duration of the block, restored afterwards (for
+    work in the caller's own process)."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    with _limit_threads():
+        try:
+            yield
+        finally:
+            if torch is not None and before is not None:
+                torch.set_num_threads(before)
 
 
 def _run_seeds(policy: Any, env: Any, seeds: Sequence[int], flags: Sequence[str]) -> list[dict]:
@@ -265,7 +281,7 @@ def start_episodes(
             env = env_factory()
             out: list[dict] = []
             try:
-                with _limit_threads():
+                with one_thread():
                     for s in seeds:
                         start = time.process_time()
                         out.append(_chunk_result(_run_seeds(policy, env, [s], flags), start))
