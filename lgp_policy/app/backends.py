@@ -18,8 +18,9 @@ import os
 import socket
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,6 +33,8 @@ __all__ = [
     "add_backend_arguments",
     "check_backend",
     "chunk_seeds",
+    "map_tasks",
+    "one_thread",
     "start_episodes",
 ]
 
@@ -78,7 +81,7 @@ def chunk_seeds(seeds: Sequence[int], n_chunks: int) -> list[list[int]]:
 
 
 def _limit_threads() -> Any:
-    """One BLAS (and torch) thread in this process; returns the threadpoolctl limiter."""
+    """One BLAS (and torch) thread in this worker process; returns the threadpoolctl limiter."""
     from threadpoolctl import threadpool_limits
 
     limiter = threadpool_limits(limits=1, user_api="blas")
@@ -86,6 +89,20 @@ def _limit_threads() -> Any:
     if torch is not None:
         torch.set_num_threads(1)
     return limiter
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """One BLAS (and torch) thread for the duration of the block, restored afterwards (for
+    work in the caller's own process)."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    with _limit_threads():
+        try:
+            yield
+        finally:
+            if torch is not None and before is not None:
+                torch.set_num_threads(before)
 
 
 def _run_seeds(policy: Any, env: Any, seeds: Sequence[int], flags: Sequence[str]) -> list[dict]:
@@ -264,7 +281,7 @@ def start_episodes(
             env = env_factory()
             out: list[dict] = []
             try:
-                with _limit_threads():
+                with one_thread():
                     for s in seeds:
                         start = time.process_time()
                         out.append(_chunk_result(_run_seeds(policy, env, [s], flags), start))
@@ -307,6 +324,37 @@ def _chunks(seeds: list[int], n_workers: int, chunk_size: int | None) -> list[li
     if chunk_size is not None:
         return chunk_seeds(seeds, math.ceil(len(seeds) / chunk_size))
     return chunk_seeds(seeds, CHUNKS_PER_WORKER * n_workers)
+
+
+def map_tasks(
+    fn: Callable[[Any], Any],
+    items: Sequence[Any],
+    *,
+    backend: str = "local",
+    address: str | None = None,
+    workers: int = 1,
+    num_cpus: float = 1,
+) -> list[Any]:
+    """``[fn(item) for item in items]``, run where ``backend`` says, results in item order.
+
+    For coarse jobs that are not episodes (e.g. one residual fine-tuning per seed): ``"local"``
+    runs them here (``workers=1``) or in ``workers`` forked processes; ``"ray"`` runs each as
+    a Ray task asking for ``num_cpus`` CPUs (``ray.init(address=address)`` unless Ray is already
+    initialised; see :func:`start_episodes`). ``fn`` and the items must be picklable for
+    anything but the serial local case.
+    """
+    check_backend(backend, workers)
+    items = list(items)
+    if backend == "ray":
+        ray = _ray_init(address, workers)
+        remote = ray.remote(num_cpus=num_cpus)(fn)
+        return list(ray.get([remote.remote(item) for item in items]))
+    if workers == 1 or len(items) <= 1:
+        return [fn(item) for item in items]
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(items)), mp_context=_pool_context(), initializer=_limit_threads
+    ) as pool:
+        return list(pool.map(fn, items))
 
 
 def add_backend_arguments(parser: argparse.ArgumentParser) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 import gym_coffee
-from lgp_policy.app.backends import EnvFactory, check_backend, start_episodes
+from lgp_policy.app.backends import EnvFactory, check_backend, one_thread, start_episodes
 from lgp_policy.rollout import Episode, run_episode
 
 __all__ = [
@@ -221,11 +221,9 @@ def evaluate_policy_stages(
 
 
 def _first_episode(policy: Any, factory: Callable[..., Any], seed: int, render: bool) -> Episode:
-    from threadpoolctl import threadpool_limits
-
     env = factory(render_mode="rgb_array") if render else factory()
     try:
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_thread():
             return run_episode(
                 policy,
                 env,

@@ -154,3 +154,17 @@ def test_chunk_seeds_cover_every_seed_once():
 def test_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         evaluate_policy_stages(ScriptedPolicy(), progress=False, **kwargs)
+
+
+def _square(x):
+    return x * x
+
+
+def test_map_tasks_keeps_the_order():
+    from lgp_policy.app.backends import map_tasks
+
+    items = list(range(7))
+    assert map_tasks(_square, items, workers=2) == [x * x for x in items]
+    assert map_tasks(_square, items) == [x * x for x in items]
+    with pytest.raises(ValueError, match="backend"):
+        map_tasks(_square, items, backend="spark")

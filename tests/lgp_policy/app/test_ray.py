@@ -39,3 +39,9 @@ def test_ray_backend_gives_the_local_results(local_ray):
     assert on_ray["backend"] == "ray"
     assert on_ray["episodes"] == local["episodes"]
     assert on_ray["stages"] == local["stages"]
+
+
+def test_map_tasks_on_ray(local_ray):
+    from lgp_policy.app.backends import map_tasks
+
+    assert map_tasks(abs, [-3, 2, -1], backend="ray") == [3, 2, 1]
