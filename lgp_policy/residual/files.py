@@ -131,14 +131,29 @@ def _member_limit(name: str) -> int | None:
     return None
 
 
-def _read_members(source: Path | io.BytesIO, where: str) -> dict[str, NDArray[Any]]:
+def _open_zip(source: Path | io.BytesIO, where: str) -> zipfile.ZipFile:
     try:
-        zf = zipfile.ZipFile(source)
+        return zipfile.ZipFile(source)
     except (zipfile.BadZipFile, OSError, ValueError) as exc:
         raise ResidualPolicyFormatError(
             f"{where} is not a residual policy file (.npz, a zip archive): {exc}"
         ) from exc
-    with zf:
+
+
+def _read_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str) -> NDArray[Any]:
+    """One member, whose declared size was checked: ZipExtFile stops at it (bounded memory)."""
+    try:
+        with zf.open(info) as f:
+            raw = f.read(info.file_size + 1)
+        return np.lib.format.read_array(io.BytesIO(raw), allow_pickle=False)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        raise ResidualPolicyFormatError(
+            f"{where}: member {info.filename!r} is not a readable array: {exc}"
+        ) from exc
+
+
+def _read_members(source: Path | io.BytesIO, where: str) -> dict[str, NDArray[Any]]:
+    with _open_zip(source, where) as zf:
         infos = zf.infolist()
         if len(infos) > MAX_PARAMS + len(_FIXED_MEMBERS):
             raise ResidualPolicyFormatError(f"{where}: too many members ({len(infos)})")
@@ -161,20 +176,7 @@ def _read_members(source: Path | io.BytesIO, where: str) -> dict[str, NDArray[An
             raise ResidualPolicyFormatError(
                 f"{where}: members declare {total} bytes in all, more than {MAX_TOTAL_BYTES}"
             )
-        arrays: dict[str, NDArray[Any]] = {}
-        for info in infos:
-            try:
-                # ZipExtFile stops at the declared (checked) size: bounded memory.
-                with zf.open(info) as f:
-                    raw = f.read(info.file_size + 1)
-                arrays[info.filename[:-4]] = np.lib.format.read_array(
-                    io.BytesIO(raw), allow_pickle=False
-                )
-            except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-                raise ResidualPolicyFormatError(
-                    f"{where}: member {info.filename!r} is not a readable array: {exc}"
-                ) from exc
-    return arrays
+        return {info.filename[:-4]: _read_array(zf, info, where) for info in infos}
 
 
 def _metadata(arrays: Mapping[str, NDArray[Any]], where: str) -> dict[str, Any]:
@@ -200,26 +202,14 @@ def read_policy_kind(source: Path | io.BytesIO) -> Any:
     """The ``kind`` (or ``format``) in the JSON metadata of an ``.npz`` policy file; reads the
     ``metadata`` member only (size-checked)."""
     where = str(source) if isinstance(source, Path) else "<in-memory file>"
-    try:
-        zf = zipfile.ZipFile(source)
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise ResidualPolicyFormatError(
-            f"{where} is not a policy file (.npz, a zip archive): {exc}"
-        ) from exc
-    with zf:
+    with _open_zip(source, where) as zf:
         try:
             info = zf.getinfo("metadata.npy")
         except KeyError:
             raise ResidualPolicyFormatError(f"{where}: no 'metadata' member") from None
         if info.file_size > MAX_METADATA_BYTES:
             raise ResidualPolicyFormatError(f"{where}: 'metadata' is larger than allowed")
-        with zf.open(info) as f:
-            raw = f.read(info.file_size + 1)
-    try:
-        arr = np.lib.format.read_array(io.BytesIO(raw), allow_pickle=False)
-    except ValueError as exc:
-        raise ResidualPolicyFormatError(f"{where}: 'metadata' is not readable: {exc}") from exc
-    meta = _metadata({"metadata": arr}, where)
+        meta = _metadata({"metadata": _read_array(zf, info, where)}, where)
     return meta.get("kind", meta.get("format"))
 
 

@@ -35,32 +35,19 @@ ACTIVATIONS = ("relu", "tanh", "elu")
 # actions of ``action_space.sample()`` (full-scale residuals); exploration comes from the
 # zero-initialised actor itself (SAC: its own Gaussian with a small initial std; TD3: Gaussian
 # action noise of std ``action_noise_sigma``; PPO: its Gaussian with ``log_std_init``).
+_OFF_POLICY: dict[str, Any] = {
+    "buffer_size": 100_000,
+    "batch_size": 256,
+    "gamma": 0.98,
+    "tau": 0.02,
+    "train_freq": 1,
+    "gradient_steps": 1,
+    "learning_starts": 0,
+    "policy_kwargs": {"net_arch": [64, 64], "activation_fn": "relu"},
+}
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
-    "sac": {
-        "learning_rate": 3e-4,
-        "buffer_size": 100_000,
-        "batch_size": 256,
-        "gamma": 0.98,
-        "tau": 0.02,
-        "train_freq": 1,
-        "gradient_steps": 1,
-        "learning_starts": 0,
-        "ent_coef": "auto",
-        "policy_kwargs": {"net_arch": [64, 64], "activation_fn": "relu"},
-        "initial_std": 0.3,
-    },
-    "td3": {
-        "learning_rate": 1e-3,
-        "buffer_size": 100_000,
-        "batch_size": 256,
-        "gamma": 0.98,
-        "tau": 0.02,
-        "train_freq": 1,
-        "gradient_steps": 1,
-        "learning_starts": 0,
-        "policy_kwargs": {"net_arch": [64, 64], "activation_fn": "relu"},
-        "action_noise_sigma": 0.2,
-    },
+    "sac": {**_OFF_POLICY, "learning_rate": 3e-4, "ent_coef": "auto", "initial_std": 0.3},
+    "td3": {**_OFF_POLICY, "learning_rate": 1e-3, "action_noise_sigma": 0.2},
     "ppo": {
         "learning_rate": 3e-4,
         "n_steps": 512,

@@ -167,15 +167,14 @@ def finetune(
     if not (isinstance(act_space, spaces.Box) and len(act_space.shape) == 1):
         raise TypeError(f"finetune needs a flat Box action space, got {act_space}")
     dims = check_residual_dims(residual_dims, int(act_space.shape[0]))
+    shared = {
+        "scale": scale,
+        "gate": gate,
+        "residual_dims": dims.tolist(),
+        "include_gate_obs": include_gate_obs,
+    }
     factory = _WrappedEnvFactory(
-        env_fn,
-        base,
-        scale=scale,
-        gate=gate,
-        residual_dims=dims.tolist(),
-        include_gate_obs=include_gate_obs,
-        skip_ungated=skip_ungated,
-        reward_fn=reward_fn,
+        env_fn, base, skip_ungated=skip_ungated, reward_fn=reward_fn, **shared
     )
     fns: list[Callable[[], gym.Env[Any, Any]]] = [factory] * n_envs
     vec_env: Any = SubprocVecEnv(fns) if n_envs > 1 else DummyVecEnv(fns)
@@ -188,10 +187,7 @@ def finetune(
     policy = ResidualPolicy(
         base,
         model,
-        scale=scale,
-        gate=gate,
-        residual_dims=dims.tolist(),
-        include_gate_obs=include_gate_obs,
+        **shared,
         action_space=act_space,
         algo=algo,
         hyperparameters=hp,
