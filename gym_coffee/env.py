@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -9,14 +10,29 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.utils import EzPickle
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
+from gym_coffee._checks import check_bool, check_choice, check_int, check_real, check_vector
 from gym_coffee.kinematics import PandaKinematics
-from gym_coffee.robot import GRIPPER_MAX_OPENING, NEUTRAL_JOINTS, Panda
+from gym_coffee.robot import (
+    ACTION_TYPES,
+    GRIPPER_MAX_OPENING,
+    MAX_EE_ROT_STEP,
+    MAX_EE_STEP,
+    MAX_JOINT_STEP,
+    NEUTRAL_JOINTS,
+    Panda,
+)
 from gym_coffee.scene import (
     BUTTON_PRESS_TRAVEL,
+    BUTTON_REST_TRAVEL,
     CUP_HEIGHT,
+    CUP_REST_ANGULAR_SPEED,
+    CUP_REST_SPEED,
     CUP_TIPPED_TILT,
     CUP_UPRIGHT_TILT,
+    LEVEL_SPECS,
+    MIN_CUP_MACHINE_DISTANCE,
     PLACE_OFFSET,
     PLACE_TOLERANCE,
     TABLE_TOP_Z,
@@ -49,6 +65,17 @@ CONTROL_DT = PHYSICS_DT * N_SUBSTEPS
 MAX_EPISODE_STEPS = 400
 #: Uniform noise (rad) added to each joint of the start posture.
 START_JOINT_NOISE = 0.05
+#: Largest rendered image side (pixels) accepted for ``width`` and ``height``.
+MAX_IMAGE_SIDE = 4096
+#: Largest accepted ``obs_noise`` and ``calibration_bias`` (m), ``actuation_noise`` (rad) and
+#: ``cup_push`` distance (m).
+MAX_PERTURBATION = 0.1
+#: ``cup_push``: the cup is moved at a step drawn uniformly from this range (0.4-1.4 s after the
+#: reset: during the approach, before a hand reaches it).
+CUP_PUSH_STEPS = (10, 35)
+#: Observed parts that carry the object-position perturbations (``obs_noise``; with
+#: ``calibration_bias``: each with its object's offset).
+PERTURBED_OBS = {"cup_pos": "cup", "cup_init_pos": "cup", "machine_pos": "machine"}
 
 # name, size, (low, high): observations are clipped to these bounds.
 _OBS_LAYOUT = [
@@ -122,10 +149,26 @@ class CoffeeEnv(gym.Env, EzPickle):
     on the machine's front panel.
 
     ## Action Space
-    ``Box(-1, 1, (8,), float32)``. ``a[:7]``: joint-position deltas, joint targets = measured
-    positions + ``a[:7] * MAX_JOINT_STEP`` (0.05 rad per step), clipped to the joint limits;
-    ``a[7]``: absolute gripper opening ``(a[7] + 1) / 2 * 0.08`` m.
-    ``gym_coffee.robot.action_from_targets`` inverts this.
+    ``Box(-1, 1, (n,), float32)``; ``action_type`` picks the mode. In every mode the last value is
+    the absolute gripper opening ``(a[-1] + 1) / 2 * 0.08`` m.
+
+    * ``"joint"`` (default, n = 8): ``a[:7]`` are joint-position deltas, joint targets = measured
+      positions + ``a[:7] * MAX_JOINT_STEP`` (0.05 rad per step), clipped to the joint limits.
+      ``gym_coffee.robot.action_from_targets`` inverts this.
+    * ``"ee"`` (n = 4): ``a[:3] * MAX_EE_STEP`` (0.02 m per step) is a Cartesian displacement of
+      the grasp point (world frame) from its measured position; the hand keeps the orientation it
+      had at reset (gripper down).
+    * ``"ee_rot"`` (n = 7): as ``"ee"``, and ``a[3:6] * MAX_EE_ROT_STEP`` (0.05 rad per step)
+      rotates the commanded hand orientation about the world x, y and z axes (roll, pitch, yaw).
+      The side grasp the task needs is reachable in this mode (or in ``"joint"``), not in
+      ``"ee"``.
+
+    The end-effector modes go through damped-least-squares inverse kinematics of the 6-D pose
+    (:meth:`PandaKinematics.ik_step`, two iterations, null-space pull to the start posture) and
+    then to joint targets (the joint step scaled down as a whole where a joint would move more
+    than ``MAX_JOINT_STEP``, so the hand keeps the commanded direction). Finite values
+    outside [-1, 1] are clipped (Gymnasium's convention); an action of another shape or with NaN
+    or inf raises ``ValueError``.
 
     ## Observation Space
     Flat ``Box(OBS_LOW, OBS_HIGH, (OBS_DIM,), float32)`` (wide finite bounds); ``OBS_SLICES`` names
@@ -147,9 +190,21 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     ## Starting State
     The Panda in a ready posture (gripper down, open) with uniform noise of +-0.05 rad per joint;
-    the cup upright in ``scene.CUP_REGION_*``; the machine in ``scene.MACHINE_REGION_*``, its yaw 90
-    degrees (front facing -y) +-15 degrees; all drawn from ``self.np_random``, so ``reset(seed=s)``
-    fixes the layout.
+    the cup upright and the machine where the level puts them (``scene.LEVEL_SPECS``), all drawn
+    from ``self.np_random``, so ``reset(seed=s)`` fixes the layout:
+
+    * ``"easy"`` (``gym_coffee.ENV_ID``): the cup in ``scene.CUP_REGION_*`` to the robot's right,
+      the machine in ``scene.MACHINE_REGION_*`` to its left, its yaw 90 degrees (front facing -y)
+      +-15 degrees.
+    * ``"hard"`` (``"gym_coffee/CoffeeTaskHard-v0"``): the machine on either side (50/50), yaw
+      +-90 degrees (front towards the middle) +-30 degrees, the cup on the other side in a wider
+      region (``scene.HARD_*``): the grasp, carry and press directions flip with the side.
+
+    ``reset(options={"layout": {...}})`` sets the layout instead: any of ``cup_pos`` and
+    ``machine_pos`` ((2,) or (3,) with z = 0, m, on the table) and ``machine_yaw`` (rad), the
+    others drawn as usual; it is checked (``ValueError`` naming the key). ``info["layout"]``
+    (reset and every step) is the episode's layout in the same form (tuples), so
+    ``reset(options={"layout": info["layout"]})`` replays it.
 
     ## Episode End
     Terminates on success (cup grasped, placed under the spout and the button pressed while it
@@ -158,10 +213,13 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     ## Info
     ``is_success``, ``cup_grasped`` (latched: the cup was lifted off the table between both
-    fingers), ``cup_placed`` (now: upright, not touched by the robot, base within
-    ``place_tolerance`` of the place under the spout, resting on the tray), ``button_pressed``
-    (latched: travel passed the threshold), ``stage`` (0: none, 1: grasped, 2: grasped and placed,
-    3: success), and the ``reward_<name>`` terms.
+    fingers), ``cup_placed`` (now: at rest upright on the tray, base within ``place_tolerance``
+    of the place under the spout, not touched by the robot: tilt < 5 degrees, speed < 0.01 m/s,
+    angular speed < 0.1 rad/s), ``button_pressed`` (latched: travel passed 5 mm while the grasp
+    point had moved along the button's axis since the button was last at rest, at least half
+    the threshold and more along the axis than across it: a sideways swipe does not count; the
+    button stops hard at 8 mm), ``stage`` (0: none, 1: grasped, 2: grasped and placed, 3:
+    success), ``layout`` (see Starting State) and the ``reward_<name>`` terms.
 
     ## Arguments
     ==================  ==========  ===========================================================
@@ -171,7 +229,30 @@ class CoffeeEnv(gym.Env, EzPickle):
     ``height``          ``240``     image height for ``"rgb_array"``
     ``render_shadows``  ``False``   draw shadows in ``"rgb_array"`` frames (about 2x the time)
     ``exact_reset``     ``True``    rebuild the physics world at every reset (see below)
+    ``action_type``     ``"joint"`` ``"joint"``, ``"ee"`` or ``"ee_rot"`` (see Action Space)
+    ``level``           ``"easy"``  difficulty level (the registered ids of ``gym_coffee.LEVELS``
+                                    set it; see Starting State)
+    ``obs_noise``       ``0.0``     std (m) of Gaussian noise added at every step to the
+                                    observed ``cup_pos``, ``cup_init_pos`` and ``machine_pos``
+    ``calibration_bias`` ``0.0``    length (m) of a constant offset per episode, in a random
+                                    3-D direction, of the observed cup positions (``cup_pos``,
+                                    ``cup_init_pos``) and, another one, of ``machine_pos``
+    ``actuation_noise`` ``0.0``     std (rad) of Gaussian noise added to every joint target
+    ``cup_push``        ``None``    ``(low, high)`` (m): the cup is moved on the table by a
+                                    distance in [low, high] in a random horizontal direction
+                                    (away from the machine), once, 10-35 steps after the reset
+                                    (during the approach), unless the robot touches it already
     ==================  ==========  ===========================================================
+
+    Every argument is checked at construction (``ValueError`` naming it): ``width`` and
+    ``height`` are integers in [1, 4096], the perturbations finite numbers in [0, 0.1].
+
+    ## Perturbations
+    All four are off by default, usable on every level, and drawn from ``self.np_random`` after
+    the layout and the start posture, so ``reset(seed=s)`` reproduces them (also in another
+    process) and the unperturbed episodes stay what they are. They perturb what the policy
+    observes or does, not the simulator's truth: ``task_points()`` and the stage checks use the
+    true poses.
 
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
@@ -211,6 +292,12 @@ class CoffeeEnv(gym.Env, EzPickle):
         height: int = 240,
         render_shadows: bool = False,
         exact_reset: bool = True,
+        action_type: str = "joint",
+        level: str = "easy",
+        obs_noise: float = 0.0,
+        calibration_bias: float = 0.0,
+        actuation_noise: float = 0.0,
+        cup_push: tuple[float, float] | None = None,
     ) -> None:
         EzPickle.__init__(
             self,
@@ -220,25 +307,41 @@ class CoffeeEnv(gym.Env, EzPickle):
             height=height,
             render_shadows=render_shadows,
             exact_reset=exact_reset,
+            action_type=action_type,
+            level=level,
+            obs_noise=obs_noise,
+            calibration_bias=calibration_bias,
+            actuation_noise=actuation_noise,
+            cup_push=cup_push,
         )
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(
-                f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}"
-            )
-        if reward_type not in ("dense", "sparse"):
-            raise ValueError(f"reward_type must be 'dense' or 'sparse', got {reward_type!r}")
-        self.render_mode = render_mode
-        self.reward_type = reward_type
-        self.width, self.height = int(width), int(height)
-        self.render_shadows = bool(render_shadows)
-        self.exact_reset = bool(exact_reset)
+        # Every argument is checked before the physics server starts.
+        self.render_mode = check_choice(
+            "render_mode", render_mode, [None, *self.metadata["render_modes"]]
+        )
+        self.reward_type = check_choice("reward_type", reward_type, ["dense", "sparse"])
+        self.width = check_int("width", width, 1, MAX_IMAGE_SIDE)
+        self.height = check_int("height", height, 1, MAX_IMAGE_SIDE)
+        self.render_shadows = check_bool("render_shadows", render_shadows)
+        self.exact_reset = check_bool("exact_reset", exact_reset)
+        self.action_type = check_choice("action_type", action_type, list(ACTION_TYPES))
+        self.level = check_choice("level", level, list(LEVEL_SPECS))
+        self.obs_noise = check_real("obs_noise", obs_noise, 0.0, MAX_PERTURBATION, "m")
+        self.calibration_bias = check_real(
+            "calibration_bias", calibration_bias, 0.0, MAX_PERTURBATION, "m"
+        )
+        self.actuation_noise = check_real(
+            "actuation_noise", actuation_noise, 0.0, MAX_PERTURBATION, "rad"
+        )
+        self.cup_push = self._check_cup_push(cup_push)
 
         self.sim = Simulation(render_mode, timestep=PHYSICS_DT, n_substeps=N_SUBSTEPS)
         self.robot = Panda(self.sim)
         self.scene = CoffeeScene(self.sim)
         self._load()
 
-        self.action_space = spaces.Box(-1.0, 1.0, (8,), dtype=np.float32)
+        self.action_space = spaces.Box(
+            -1.0, 1.0, (ACTION_TYPES[self.action_type],), dtype=np.float32
+        )
         self.observation_space = spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
 
         self._n_steps = 0
@@ -247,6 +350,12 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._pressed = False
         self._stage = 0
         self._pressed_with_cup = False
+        self._rest_posture = NEUTRAL_JOINTS.copy()
+        self._hand_rotation = np.eye(3)  # commanded hand orientation (end-effector modes)
+        self._press_origin = np.zeros(3)  # grasp point when the button was last at rest
+        self._bias = {"cup": np.zeros(3), "machine": np.zeros(3)}
+        self._push: tuple[int, NDArray[np.float64]] | None = None  # (step, displacement)
+        self._layout_info: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ public API
     @property
@@ -265,8 +374,16 @@ class CoffeeEnv(gym.Env, EzPickle):
     ) -> tuple[NDArray[np.float32], dict[str, Any]]:
         super().reset(seed=seed)
         rng = self.np_random
-        layout = Layout.sample(rng)
+        layout = Layout.sample(rng, self.level)
         q0 = NEUTRAL_JOINTS + rng.uniform(-START_JOINT_NOISE, START_JOINT_NOISE, size=7)
+        if options is not None:  # checked before any work
+            if not isinstance(options, Mapping) or set(map(str, options)) - {"layout"}:
+                raise ValueError(
+                    f"options must be None or a dict {{'layout': ...}}, got {options!r}"
+                )
+            if "layout" in options:
+                layout = layout.replace(options["layout"])
+        self._draw_perturbations(rng, layout)
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
@@ -284,6 +401,10 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._pressed = False
         self._stage = 0
         self._pressed_with_cup = False
+        self._rest_posture = q0.copy()
+        q, _ = self.robot.joint_states()
+        self._press_origin, self._hand_rotation = self.kinematics.forward_pose(q)
+        self._layout_info = layout.as_dict()
         obs = self._get_obs()
         info = self._evaluate()[0]
         if self.render_mode == "human":
@@ -293,10 +414,16 @@ class CoffeeEnv(gym.Env, EzPickle):
     def step(
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
-        self.robot.set_action(action)
+        q_target, opening = self._targets(self._check_action(action))
+        if self.actuation_noise > 0.0:
+            noise = self.np_random.normal(0.0, self.actuation_noise, 7)
+            q_target = np.clip(q_target + noise, self.robot.joint_lower, self.robot.joint_upper)
+        self.robot.command(q_target, opening)
         self.scene.apply_spring()
-        self.sim.step()
+        self.sim.step(self.scene.enforce_stop)
         self._n_steps += 1
+        if self._push is not None and self._n_steps == self._push[0]:
+            self._push_cup(self._push[1])
         obs = self._get_obs()
         info, failed = self._evaluate()
         reward = float(sum(info[f"reward_{name}"] for name in REWARD_TERMS))
@@ -323,6 +450,74 @@ class CoffeeEnv(gym.Env, EzPickle):
             self.sim.close()
 
     # ------------------------------------------------------------------ internals
+    @staticmethod
+    def _check_cup_push(cup_push: Any) -> tuple[float, float] | None:
+        if cup_push is None:
+            return None
+        expected = (
+            f"cup_push must be None or (low, high) with 0 <= low <= high <= {MAX_PERTURBATION} m"
+        )
+        try:
+            low, high = (float(v) for v in cup_push)
+        except (TypeError, ValueError):
+            raise ValueError(f"{expected}, got {cup_push!r}") from None
+        if not (np.isfinite([low, high]).all() and 0.0 <= low <= high <= MAX_PERTURBATION):
+            raise ValueError(f"{expected}, got {cup_push!r}")
+        return low, high
+
+    def _draw_perturbations(self, rng: np.random.Generator, layout: Layout) -> None:
+        """This episode's calibration offsets and cup push (no draws when they are off)."""
+        for name in ("cup", "machine"):
+            offset = np.zeros(3)
+            if self.calibration_bias > 0.0:
+                direction = rng.normal(size=3)
+                offset = self.calibration_bias * direction / np.linalg.norm(direction)
+            self._bias[name] = offset
+        self._push = None
+        if self.cup_push is not None:
+            step = int(rng.integers(CUP_PUSH_STEPS[0], CUP_PUSH_STEPS[1] + 1))
+            distance = float(rng.uniform(*self.cup_push))
+            angle = float(rng.uniform(0.0, 2.0 * np.pi))
+            displacement = distance * np.array([np.cos(angle), np.sin(angle), 0.0])
+            # Away from the machine where the drawn direction would bring the cup close to it.
+            pushed = layout.cup_pos + displacement
+            if np.linalg.norm(pushed[:2] - layout.machine_pos[:2]) < MIN_CUP_MACHINE_DISTANCE:
+                displacement = -displacement
+            self._push = (step, displacement)
+
+    def _push_cup(self, displacement: NDArray[np.float64]) -> None:
+        """Move the standing cup by ``displacement`` (at rest), unless the robot touches it."""
+        if self._grasped or self.scene.robot_touches_cup():
+            return
+        pos, quat = self.scene.cup_pose()
+        self.sim.set_base_pose("cup", pos + displacement, quat)
+
+    def _check_action(self, action: Any) -> NDArray[np.float64]:
+        """The action as float64, clipped to [-1, 1]; ValueError for a wrong shape or NaN/inf."""
+        size = ACTION_TYPES[self.action_type]
+        array = check_vector(f"action (action_type={self.action_type!r})", action, (size,))
+        return np.clip(array, -1.0, 1.0)
+
+    def _targets(self, action: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        """Joint targets (7,) and gripper opening (m) for an action of the env's ``action_type``."""
+        q, _ = self.robot.joint_states()
+        opening = (action[-1] + 1.0) / 2.0 * GRIPPER_MAX_OPENING
+        if self.action_type == "joint":
+            return self.robot.joint_targets(q, action), opening
+        position = self.kinematics.forward_kinematics(q) + action[:3] * MAX_EE_STEP
+        if self.action_type == "ee_rot":
+            turn = Rotation.from_euler("xyz", action[3:6] * MAX_EE_ROT_STEP).as_matrix()
+            self._hand_rotation = turn @ self._hand_rotation
+        q_target = self.kinematics.ik_step(
+            q,
+            position,
+            self._hand_rotation,
+            self._rest_posture,
+            max_step=MAX_JOINT_STEP,
+            keep_direction=True,
+        )
+        return q_target, opening
+
     def _load(self) -> None:
         """Load robot and scene into the (new) physics server."""
         self.robot.load()
@@ -333,6 +528,14 @@ class CoffeeEnv(gym.Env, EzPickle):
         q, qd = self.robot.joint_states()
         cup_pos, cup_quat = self.scene.cup_pose()
         layout = self.scene.layout
+        observed = {
+            "cup_pos": cup_pos + self._bias["cup"],
+            "cup_init_pos": self._cup_init_pos + self._bias["cup"],
+            "machine_pos": layout.machine_pos + self._bias["machine"],
+        }
+        if self.obs_noise > 0.0:
+            for name in PERTURBED_OBS:
+                observed[name] = observed[name] + self.np_random.normal(0.0, self.obs_noise, 3)
         obs = np.concatenate(
             [
                 [self._n_steps * CONTROL_DT],
@@ -340,10 +543,10 @@ class CoffeeEnv(gym.Env, EzPickle):
                 qd,
                 [self.robot.gripper_opening()],
                 self.kinematics.forward_kinematics(q),
-                cup_pos,
+                observed["cup_pos"],
                 cup_quat,
-                self._cup_init_pos,
-                layout.machine_pos,
+                observed["cup_init_pos"],
+                observed["machine_pos"],
                 [layout.machine_yaw],
                 [self.scene.button_travel()],
             ]
@@ -362,16 +565,21 @@ class CoffeeEnv(gym.Env, EzPickle):
             self._grasped = True
         place_pos = scene.machine_point(PLACE_OFFSET)
         offset = cup_pos - place_pos
-        cup_lin_vel, _ = self.sim.get_base_velocity("cup")
+        cup_lin_vel, cup_ang_vel = self.sim.get_base_velocity("cup")
         placed = bool(
             tilt < CUP_UPRIGHT_TILT
             and np.hypot(offset[0], offset[1]) < PLACE_TOLERANCE
             and abs(offset[2]) < 0.01
+            and np.linalg.norm(cup_lin_vel) < CUP_REST_SPEED
+            and np.linalg.norm(cup_ang_vel) < CUP_REST_ANGULAR_SPEED
             and not scene.robot_touches_cup()
-            and np.linalg.norm(cup_lin_vel) < 0.1
         )
+        q, _ = self.robot.joint_states()
+        ee = self.kinematics.forward_kinematics(q)
         travel = scene.button_travel()
-        if travel >= BUTTON_PRESS_TRAVEL:
+        if travel < BUTTON_REST_TRAVEL:
+            self._press_origin = ee
+        elif travel >= BUTTON_PRESS_TRAVEL and self._pushed_along_axis(ee):
             self._pressed = True
             if placed:
                 self._pressed_with_cup = True
@@ -387,8 +595,6 @@ class CoffeeEnv(gym.Env, EzPickle):
         previous_stage, self._stage = self._stage, stage
         terms = dict.fromkeys(REWARD_TERMS, 0.0)
         if self.reward_type == "dense":
-            q, _ = self.robot.joint_states()
-            ee = self.kinematics.forward_kinematics(q)
             cup_middle = cup_pos + np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
             if not self._grasped:
                 terms["reach"] = -float(np.linalg.norm(ee - cup_middle))
@@ -412,6 +618,16 @@ class CoffeeEnv(gym.Env, EzPickle):
             "cup_placed": placed,
             "button_pressed": bool(self._pressed),
             "stage": int(stage),
+            "layout": dict(self._layout_info),
         }
         info.update({f"reward_{name}": float(value) for name, value in terms.items()})
         return info, failed
+
+    def _pushed_along_axis(self, ee: NDArray[np.float64]) -> bool:
+        """Whether the grasp point moved along the button's axis since the button was at rest:
+        at least half the press threshold, and more along the axis than across it."""
+        axis = self.scene.machine_rotation[:, 0]
+        moved = ee - self._press_origin
+        along = float(moved @ axis)
+        across = float(np.linalg.norm(moved - along * axis))
+        return along >= 0.5 * BUTTON_PRESS_TRAVEL and across <= along

@@ -178,3 +178,54 @@ class PandaKinematics:
         """Geometric Jacobian (6, 7): position rows, then angular-velocity rows (the joint axes)."""
         self._update(q)
         return np.vstack([self._jac_pos, np.array(self._axes).T])
+
+    def ik_step(
+        self,
+        q: NDArray[np.float64],
+        position: NDArray[np.float64],
+        rotation: NDArray[np.float64],
+        rest: NDArray[np.float64],
+        *,
+        max_step: float,
+        iterations: int = 2,
+        damping: float = 0.03,
+        orientation_weight: float = 0.3,
+        null_space_gain: float = 0.05,
+        keep_direction: bool = False,
+    ) -> NDArray[np.float64]:
+        """Joint targets that move the grasp point towards ``position`` (3,) and the hand towards
+        ``rotation`` (3, 3), from the measured joint positions ``q`` (7,).
+
+        ``iterations`` damped-least-squares steps on the 6-D pose error (orientation errors, in rad,
+        weighted by ``orientation_weight`` against position errors in m), each with a null-space
+        pull of ``null_space_gain`` towards the posture ``rest``. The change from ``q`` is limited
+        to ``max_step`` rad per joint: clipped joint by joint, or, with ``keep_direction``, scaled
+        as a whole (the hand then moves along the commanded direction, only slower); the result is
+        clipped to the joint limits. The scripted teacher and the env's end-effector action modes
+        share it.
+        """
+        q_target = q.copy()
+        eye6, eye7 = np.eye(6), np.eye(7)
+        for _ in range(iterations):
+            pos, rot = self.forward_pose(q_target)
+            err_p = position - pos
+            err_o = 0.5 * (
+                np.cross(rot[:, 0], rotation[:, 0])
+                + np.cross(rot[:, 1], rotation[:, 1])
+                + np.cross(rot[:, 2], rotation[:, 2])
+            )
+            jac = self.jacobian(q_target)
+            jac[3:] *= orientation_weight
+            err = np.concatenate([err_p, orientation_weight * err_o])
+            jjt = jac @ jac.T + damping**2 * eye6
+            dq = jac.T @ np.linalg.solve(jjt, err)
+            pinv = jac.T @ np.linalg.solve(jjt, jac)
+            dq += (eye7 - pinv) @ (null_space_gain * (rest - q_target))
+            q_target = q_target + dq
+        step = q_target - q
+        largest = float(np.max(np.abs(step)))
+        if keep_direction and largest > max_step:
+            step *= max_step / largest
+        else:
+            step = np.clip(step, -max_step, max_step)
+        return np.clip(q + step, self.joint_lower, self.joint_upper)

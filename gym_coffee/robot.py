@@ -15,10 +15,13 @@ from gym_coffee.kinematics import JOINT_LOWER, JOINT_UPPER, JOINT_VELOCITY_LIMIT
 from gym_coffee.simulation import Simulation
 
 __all__ = [
+    "ACTION_TYPES",
     "ARM_JOINTS",
     "EE_LINK",
     "FINGER_JOINTS",
     "GRIPPER_MAX_OPENING",
+    "MAX_EE_ROT_STEP",
+    "MAX_EE_STEP",
     "MAX_JOINT_STEP",
     "NEUTRAL_JOINTS",
     "Panda",
@@ -27,6 +30,14 @@ __all__ = [
 
 #: Largest joint-position change commanded per control step (rad); at 25 Hz, 1.25 rad/s.
 MAX_JOINT_STEP = 0.05
+#: Largest Cartesian step of the grasp point commanded per control step in the end-effector
+#: action modes (m); at 25 Hz, 0.5 m/s.
+MAX_EE_STEP = 0.02
+#: Largest rotation of the hand about each world axis per control step (rad), ``"ee_rot"``.
+MAX_EE_ROT_STEP = 0.05
+#: Action modes and their action sizes: joint deltas + gripper, Cartesian delta + gripper,
+#: Cartesian and roll/pitch/yaw deltas + gripper.
+ACTION_TYPES: dict[str, int] = {"joint": 8, "ee": 4, "ee_rot": 7}
 #: Largest distance between the fingers (m).
 GRIPPER_MAX_OPENING = 0.08
 #: PyBullet joint indices of panda_joint1..7, of the two finger joints, and the grasp-target link.
@@ -99,9 +110,10 @@ class Panda:
         self.sim.set_base_pose(self.name, self.base_position, (0.0, 0.0, 0.0, 1.0))
         self.sim.reset_joint_states(self.name, ARM_JOINTS, q)
         self.sim.reset_joint_states(self.name, FINGER_JOINTS, [half, half])
-        self._command(q, gripper_opening)
+        self.command(q, gripper_opening)
 
-    def _command(self, q_target: NDArray[np.float64], gripper_opening: float) -> None:
+    def command(self, q_target: NDArray[np.float64], gripper_opening: float) -> None:
+        """Hold the arm's joint targets ``q_target`` (7,) and the gripper opening (m)."""
         self.sim.control_joints(
             self.name,
             ARM_JOINTS,
@@ -120,13 +132,11 @@ class Panda:
             position_gain=POSITION_GAIN,
         )
 
-    def set_action(self, action: ArrayLike) -> None:
-        """Apply an action (8,) in [-1, 1] (clipped) as joint-position and gripper targets."""
-        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
-        q, _ = self.joint_states()
-        q_target = np.clip(q + action[:7] * MAX_JOINT_STEP, self.joint_lower, self.joint_upper)
-        opening = (action[7] + 1.0) / 2.0 * GRIPPER_MAX_OPENING
-        self._command(q_target, opening)
+    def joint_targets(
+        self, q: NDArray[np.float64], action: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """Joint targets (7,) of a joint-mode action (8,) in [-1, 1] from measured joints ``q``."""
+        return np.clip(q + action[:7] * MAX_JOINT_STEP, self.joint_lower, self.joint_upper)
 
     def joint_states(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Arm joint positions (7,) and velocities (7,)."""

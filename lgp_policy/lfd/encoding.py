@@ -140,6 +140,30 @@ def constraint_intervals(
     return out
 
 
+def _to_frame(
+    x: NDArray[np.float64], origin: ArrayLike, rotation: ArrayLike, *, name: str, demo: int
+) -> NDArray[np.float64]:
+    """``R^T (p - o)`` for every ``d``-D point ``p`` in the rows of ``x (n, k d)``; ``(n, k d)``."""
+    o = np.asarray(origin, dtype=float)
+    R = np.asarray(rotation, dtype=float)
+    where = f"frames[{demo}][{name!r}]"
+    if o.ndim != 1 or o.shape[0] not in (2, 3):
+        raise ValueError(f"{where}: origin must have shape (2,) or (3,), got {o.shape}")
+    d = o.shape[0]
+    if R.shape != (d, d):
+        raise ValueError(
+            f"{where}: rotation must have shape ({d}, {d}) to match its origin, got {R.shape}"
+        )
+    if not (np.all(np.isfinite(o)) and np.all(np.isfinite(R))):
+        raise ValueError(f"{where}: origin and rotation must be finite")
+    if x.ndim != 2 or x.shape[1] == 0 or x.shape[1] % d:
+        raise ValueError(
+            f"ee_pos[{demo}] must have shape (n_steps, k * {d}) for {d}-D frames, got {x.shape}"
+        )
+    pts = x.reshape(len(x), -1, d)  # every d-D point on the hand
+    return ((pts - o) @ R).reshape(len(x), -1)  # R^T (x - o), row-wise
+
+
 class _Empirical:
     """Per-phase mean and std across demonstrations (no GP); the ``empirical`` encoder."""
 
@@ -269,11 +293,12 @@ class DemonstrationEncoder:
         Args:
             times: per demonstration, ``(n_i,)`` time stamps.
             joint_pos: per demonstration, ``(n_i, d_joint)`` joint positions (plus gripper).
-            ee_pos: per demonstration, ``(n_i, 3)`` end-effector positions (world frame), or
-                ``(n_i, 3 m)`` for ``m`` points on the hand (each transformed into the frames).
-            frames: per demonstration, ``{object name: (origin (3,), rotation (3, 3))}``, the
-                object's *initial* pose in the world frame. Every demonstration must name the
-                same objects.
+            ee_pos: per demonstration, ``(n_i, d)`` end-effector positions (world frame), or
+                ``(n_i, k d)`` for ``k`` points on the hand (each transformed into the frames);
+                ``d`` is 2 or 3, the dimension of the frames' origins.
+            frames: per demonstration, ``{object name: (origin (d,), rotation (d, d))}``, the
+                object's *initial* pose in the world frame (``d = 2``: a planar task, ``d = 3``:
+                a spatial one). Every demonstration must name the same objects.
             landmarks: optional, per demonstration, the times ``(k,)`` of ``k`` events every
                 demonstration has in the same order; the phase is then aligned on them
                 (:func:`phase_of`, each event at its mean normalised time, ``landmark_phases_``).
@@ -331,13 +356,8 @@ class DemonstrationEncoder:
         }
         for name in names:
             rel = []
-            for t, x, f, mk in zip(times, ee_pos, frames, marks, strict=True):
-                origin, rotation = (np.asarray(a, dtype=float) for a in f[name])
-                x = np.asarray(x, dtype=float)
-                if x.ndim != 2 or x.shape[1] % 3:
-                    raise ValueError(f"ee_pos must be (n_steps, 3 * n_points), got {x.shape}")
-                pts = x.reshape(len(x), -1, 3)  # every 3-D point on the hand
-                local = ((pts - origin) @ rotation).reshape(len(x), -1)  # R^T (x - o)
+            for i, (t, x, f, mk) in enumerate(zip(times, ee_pos, frames, marks, strict=True)):
+                local = _to_frame(np.asarray(x, dtype=float), *f[name], name=name, demo=i)
                 rel.append(resample(t, local, self.n_steps, mk, lp))
             data[name] = np.stack(rel)
         self.data_ = data

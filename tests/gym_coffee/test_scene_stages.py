@@ -18,7 +18,7 @@ from gym_coffee.scene import (
     MACHINE_YAW_RANGE,
     MIN_CUP_MACHINE_DISTANCE,
 )
-from gym_coffee.teacher import ScriptedTeacher
+from gym_coffee.teacher import FINGERTIP_OFFSET, REST_POSTURE, ScriptedTeacher, _hand_rotation
 
 HOLD_OPEN = np.array([0, 0, 0, 0, 0, 0, 0, 1], dtype=np.float32)
 
@@ -34,6 +34,37 @@ def hold(env, n):
     for _ in range(n):
         out = env.step(HOLD_OPEN)
     return out
+
+
+def drive(env, position, rotation, n_steps, opening=0.0):
+    """Track a grasp-point pose for ``n_steps`` with the env's own IK (joint targets, env.step
+    semantics), returning the last info."""
+    from gym_coffee.robot import MAX_JOINT_STEP
+
+    info = {}
+    for _ in range(n_steps):
+        q, _ = env.robot.joint_states()
+        q_target = env.kinematics.ik_step(
+            q, position, rotation, REST_POSTURE, max_step=MAX_JOINT_STEP
+        )
+        env.robot.command(q_target, opening)
+        env.scene.apply_spring()
+        env.sim.step(env.scene.enforce_stop)
+        env._n_steps += 1
+        info, _ = env._evaluate()
+    return info
+
+
+def press_button(env, depth, direction=None, approach=0.06):
+    """Press the button with the closed fingertips along ``direction`` (default: its axis) to
+    ``depth`` (m) past its face."""
+    points = env.task_points()
+    axis = points["button_axis"]
+    direction = axis if direction is None else direction
+    rotation = _hand_rotation(direction, False)
+    tip = points["button_pos"] - FINGERTIP_OFFSET * direction
+    drive(env, tip - approach * direction, rotation, 60)
+    return drive(env, tip + depth * direction, rotation, 30)
 
 
 def check_reward_terms(reward, info):
@@ -152,8 +183,7 @@ def test_button_pressed_without_the_cup_is_not_success():
 
 def test_button_springs_back_and_latches(env):
     env.reset(seed=9)
-    env.sim.reset_joint_states("machine", [0], [0.007])
-    info = env._evaluate()[0]
+    info = press_button(env, depth=0.007)
     assert info["button_pressed"] and not info["is_success"]
     obs, _, _, _, info = hold(env, 5)
     assert obs_part(obs, "button_travel")[0] < 0.002  # the spring pushed it back

@@ -1,0 +1,161 @@
+"""Action modes (joint, end-effector, end-effector with rotation), action checks and constructor
+argument checks of CoffeeEnv."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import gym_coffee
+from gym_coffee.env import CoffeeEnv, obs_part
+from gym_coffee.robot import ACTION_TYPES, MAX_EE_ROT_STEP, MAX_EE_STEP
+
+EE_TYPES = ["ee", "ee_rot"]
+
+
+@pytest.mark.parametrize("action_type", EE_TYPES)
+def test_end_effector_modes_pass_both_checkers_without_warnings(action_type):
+    from gymnasium.utils.env_checker import check_env
+
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = gym.make(gym_coffee.ENV_ID, render_mode="rgb_array", action_type=action_type)
+        try:
+            assert env.action_space.shape == (ACTION_TYPES[action_type],)
+            check_env(env.unwrapped)
+            sb3_checker.check_env(env, warn=True, skip_render_check=False)
+        finally:
+            env.close()
+
+
+@pytest.mark.parametrize("action_type", EE_TYPES)
+def test_cartesian_action_moves_the_grasp_point_along_the_command(action_type):
+    env = CoffeeEnv(action_type=action_type)
+    try:
+        obs, _ = env.reset(seed=0)
+        for direction in ([0.5, 0.0, 0.0], [0.0, 0.0, -0.5], [0.0, 0.5, 0.0]):
+            action = np.zeros(ACTION_TYPES[action_type], dtype=np.float32)
+            action[:3], action[-1] = direction, 1.0
+            start = obs_part(obs, "ee_pos").copy()
+            for _ in range(8):
+                obs = env.step(action)[0]
+            moved = obs_part(obs, "ee_pos") - start
+            commanded = 8 * MAX_EE_STEP * np.array(direction)
+            # Along the command (the last step is still being tracked), hardly across it.
+            assert 0.7 < moved @ commanded / (commanded @ commanded) < 1.1, moved
+            across = moved - (moved @ commanded) / (commanded @ commanded) * commanded
+            assert np.linalg.norm(across) < 0.1 * np.linalg.norm(commanded), moved
+    finally:
+        env.close()
+
+
+def test_ee_keeps_the_hand_orientation_and_ee_rot_turns_it():
+    for action_type, turn in [("ee", None), ("ee_rot", 5)]:
+        env = CoffeeEnv(action_type=action_type)
+        try:
+            obs, _ = env.reset(seed=1)
+            kin = env.kinematics
+            start = kin.forward_pose(obs_part(obs, "joint_pos"))[1]
+            action = np.zeros(ACTION_TYPES[action_type], dtype=np.float32)
+            action[0], action[-1] = 0.3, 1.0
+            if turn is not None:
+                action[turn] = 1.0  # yaw about the world z axis
+            for _ in range(10):
+                obs = env.step(action)[0]
+            end = kin.forward_pose(obs_part(obs, "joint_pos"))[1]
+            rotvec = Rotation.from_matrix(end @ start.T).as_rotvec()
+            if turn is None:
+                assert np.linalg.norm(rotvec) < 0.02
+            else:
+                np.testing.assert_allclose(rotvec, [0, 0, 10 * MAX_EE_ROT_STEP], atol=0.03)
+        finally:
+            env.close()
+
+
+BAD_ACTIONS = ["nan", "inf", "-inf", "one more", "one less", "2-d", "scalar", "text"]
+
+
+def _bad_action(kind: str, n: int) -> object:
+    if kind in ("nan", "inf", "-inf"):
+        action = np.zeros(n, dtype=np.float32)
+        action[1] = float(kind)
+        return action
+    return {
+        "one more": np.zeros(n + 1),
+        "one less": np.zeros(n - 1),
+        "2-d": np.zeros((1, n)),
+        "scalar": 0.5,
+        "text": "forward",
+    }[kind]
+
+
+@pytest.mark.parametrize("action_type", list(ACTION_TYPES))
+def test_bad_actions_raise_one_clear_error(action_type):
+    n = ACTION_TYPES[action_type]
+    env = CoffeeEnv(action_type=action_type)
+    try:
+        obs, _ = env.reset(seed=0)
+        for kind in BAD_ACTIONS:
+            with pytest.raises(ValueError, match=rf"^action .*(\({n},\)|finite)") as error:
+                env.step(_bad_action(kind, n))
+            assert action_type in str(error.value), error.value
+        # Nothing happened: the episode goes on from where it was.
+        after = env.step(np.zeros(n, dtype=np.float32))[0]
+        assert np.isfinite(after).all() and after[0] == pytest.approx(obs[0] + env.sim.dt)
+    finally:
+        env.close()
+
+
+def test_finite_actions_out_of_range_are_clipped():
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-3, 3, (10, 8))
+    runs = []
+    for scale in (None, "clip"):
+        env = CoffeeEnv()
+        try:
+            obs = [env.reset(seed=2)[0]]
+            for a in actions:
+                obs.append(env.step(a if scale is None else np.clip(a, -1, 1))[0])
+        finally:
+            env.close()
+        runs.append(np.array(obs))
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"render_mode": "rgb_array", "width": -5}, "width"),
+        ({"render_mode": "rgb_array", "width": 0}, "width"),
+        ({"render_mode": "rgb_array", "height": 10**6}, "height"),
+        ({"render_mode": "rgb_array", "width": 320.5}, "width"),
+        ({"render_mode": "rgb_array", "width": "320"}, "width"),
+        ({"render_mode": "rgb_array", "height": True}, "height"),
+        ({"render_mode": "rgb"}, "render_mode"),
+        ({"reward_type": "shaped"}, "reward_type"),
+        ({"render_shadows": "no"}, "render_shadows"),
+        ({"exact_reset": 1}, "exact_reset"),
+        ({"action_type": "cartesian"}, "action_type"),
+        ({"action_type": None}, "action_type"),
+    ],
+)
+@pytest.mark.filterwarnings("ignore:.*render_mode:UserWarning")
+def test_bad_constructor_arguments_raise_before_any_work(kwargs, name):
+    with pytest.raises(ValueError, match=rf"^{name} must"):
+        CoffeeEnv(**kwargs)
+    with pytest.raises(ValueError, match=rf"^{name} must"):
+        gym.make(gym_coffee.ENV_ID, **kwargs)
+
+
+def test_small_and_odd_render_sizes_work():
+    env = CoffeeEnv(render_mode="rgb_array", width=1, height=3)
+    try:
+        env.reset(seed=0)
+        assert env.render().shape == (3, 1, 3)
+    finally:
+        env.close()
