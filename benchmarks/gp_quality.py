@@ -11,8 +11,9 @@ held-out one at its own time stamps):
   points exactly (zero spread there), ``grid`` ``shared`` (one time grid, replicated inputs) or
   ``own`` (each demonstration on its own time stamps, distinct inputs).
 
-Methods: ``local`` (``LocalGP`` as the encoder builds it, ``DemonstrationEncoder._make_model``),
-``exact`` (the homoscedastic ``GaussianProcess`` with the same kernel) and ``promp``
+Methods: ``local-<rule>`` (``LocalGP`` as the encoder builds it,
+``DemonstrationEncoder._make_model``, with each combination rule), ``exact`` (the homoscedastic
+``GaussianProcess`` with the same kernel) and ``promp``
 (``movement_primitives.promp.ProMP``, ``N_WEIGHTS`` Gaussian basis functions per dimension; its
 predictive variance is that of the learnt weight distribution, which models the variation
 between demonstrations).
@@ -37,7 +38,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import math
 import time
 import warnings
 from collections.abc import Callable
@@ -48,7 +48,8 @@ import numpy as np
 
 from lgp_policy.gp.exact import GaussianProcess
 from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
-from lgp_policy.lfd.encoding import DemonstrationEncoder
+from lgp_policy.gp.local import COMBINE_RULES
+from lgp_policy.lfd.encoding import DemonstrationEncoder, new_demonstration_scale
 
 N_WEIGHTS = 25
 CACHE = Path("/tmp/gym_coffee_gp_quality")
@@ -107,25 +108,42 @@ def fit_predict_gp(model: Any, t_tr, y_tr, t_te):
     return model.predict(t_te[:, None], return_std=True)
 
 
-def make_methods(n_steps: int) -> dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], Any]]:
-    enc_local = DemonstrationEncoder(n_steps=n_steps, model="local")
-    enc_exact = DemonstrationEncoder(n_steps=n_steps, model="exact")
+def make_methods(
+    n_steps: int, rules: tuple[str, ...]
+) -> dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], Any]]:
+    """The compared methods. GP stds are scaled by ``new_demonstration_scale`` as the encoder
+    does (``calibrate=True``); ``<method>-raw`` rows show the same fits without it."""
+
+    def gp(model: str, **kw: Any):
+        enc = DemonstrationEncoder(n_steps=n_steps, model=model, **kw)
+        memo: dict[int, Any] = {}
+
+        def run(t_tr, y_tr, t_te, raw: bool = False):
+            key = hash((t_tr.tobytes(), y_tr.tobytes(), t_te.tobytes()))
+            if key not in memo:
+                memo[key] = fit_predict_gp(enc._make_model(), t_tr, y_tr, t_te)
+            mean, std = memo[key]
+            return mean, std * (1.0 if raw else new_demonstration_scale(t_tr.shape[0]))
+
+        return run
 
     def promp(t_tr, y_tr, t_te):
         from movement_primitives.promp import ProMP
 
         p = ProMP(n_dims=1, n_weights_per_dim=N_WEIGHTS)
         p.imitate(t_tr, y_tr[:, :, None])
-        # ProMP evaluates on one time vector; held-out stamps are the same length here
         mean = p.mean_trajectory(t_te)[:, 0]
         var = p.var_trajectory(t_te)[:, 0]
         return mean, np.sqrt(np.maximum(var, 0.0))
 
-    return {
-        "local": lambda a, b, c: fit_predict_gp(enc_local._make_model(), a, b, c),
-        "exact": lambda a, b, c: fit_predict_gp(enc_exact._make_model(), a, b, c),
-        "promp": promp,
-    }
+    methods: dict[str, Callable[..., Any]] = {}
+    for rule in rules:
+        f = gp("local", combine=rule)
+        methods[f"local-{rule}"] = f
+        methods[f"local-{rule}-raw"] = lambda a, b, c, f=f: f(a, b, c, raw=True)
+    methods["exact"] = gp("exact")
+    methods["promp"] = promp
+    return methods
 
 
 def loo(Ts: np.ndarray, Ys: np.ndarray, method) -> dict[str, float]:
@@ -198,17 +216,25 @@ def hetero_sets():
 
 def hetero_table(seeds: list[int], n_train: int = 200, n_test: int = 2000) -> list[str]:
     lines = [
-        "| set | NLPD homoscedastic | NLPD heteroscedastic | gain (nats) | CPU s het / hom |",
-        "|---|---|---|---|---|",
+        "| set | NLPD homoscedastic | NLPD heteroscedastic | gain (nats) | oracle gain | "
+        "CPU s het / hom |",
+        "|---|---|---|---|---|---|",
     ]
     for name, (a, b), f, sd in hetero_sets():
-        nh, ne, th, te = [], [], 0.0, 0.0
+        nh: list[float] = []
+        ne: list[float] = []
+        oracle: list[float] = []
+        th, te = 0.0, 0.0
         for seed in seeds:
             rng = np.random.default_rng(seed)
             x = rng.uniform(a, b, n_train)
             y = f(x) + sd(x) * rng.standard_normal(n_train)
             xt = rng.uniform(a, b, n_test)
             yt = f(xt) + sd(xt) * rng.standard_normal(n_test)
+            # the largest gain possible: true f with the true noise vs the best constant noise
+            r2 = (yt - f(xt)) ** 2
+            het_o = np.mean(0.5 * np.log(2 * np.pi * sd(xt) ** 2) + 0.5 * r2 / sd(xt) ** 2)
+            oracle.append(float(0.5 * np.log(2 * np.pi * np.mean(r2)) + 0.5 - het_o))
             for model, acc in ((GaussianProcess(), nh), (HeteroscedasticGP(random_state=0), ne)):
                 c0 = time.process_time()
                 with warnings.catch_warnings():
@@ -225,7 +251,8 @@ def hetero_table(seeds: list[int], n_train: int = 200, n_test: int = 2000) -> li
                 )
         gain = float(np.mean(nh) - np.mean(ne))
         lines.append(
-            f"| {name} | {np.mean(nh):.3f} | {np.mean(ne):.3f} | {gain:+.3f} | {te / max(th, 1e-9):.1f} |"
+            f"| {name} | {np.mean(nh):.3f} | {np.mean(ne):.3f} | {gain:+.3f} | "
+            f"{np.mean(oracle):+.3f} | {te / max(th, 1e-9):.1f} |"
         )
     return lines
 
@@ -234,9 +261,16 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="2 dims per frame, 1 seed")
     parser.add_argument("--n-steps", type=int, default=100, help="resampled points per demo")
+    parser.add_argument(
+        "--rules",
+        nargs="+",
+        default=list(COMBINE_RULES),
+        choices=COMBINE_RULES,
+        help="LocalGP combination rules to compare",
+    )
     args = parser.parse_args(argv)
     max_dims = 2 if args.quick else None
-    methods = make_methods(args.n_steps)
+    methods = make_methods(args.n_steps, tuple(args.rules))
     sets: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, Y in coffee_sets(args.n_steps, max_dims).items():
         T = np.tile(np.linspace(0.0, 1.0, Y.shape[1]), (Y.shape[0], 1))
@@ -257,7 +291,8 @@ def main(argv: list[str] | None = None) -> None:
                 flush=True,
             )
     print(
-        "\n| method | mean RMSE | mean NLPD | mean cov. | worst step | bad folds | RMSE / ProMP | NLPD - ProMP |"
+        "\n| method | mean RMSE | mean NLPD | mean cov. | worst step | bad folds | "
+        "RMSE / ProMP | NLPD - ProMP |"
     )
     print("|---|---|---|---|---|---|---|---|")
     ref = summary["promp"]
@@ -268,7 +303,8 @@ def main(argv: list[str] | None = None) -> None:
         dn = np.mean([r["nlpd"] - p["nlpd"] for r, p in zip(rs, ref, strict=True)])
         print(
             f"| {m} | {rm:.3f} | {nl:.2f} | {np.mean([r['cov'] for r in rs]):.3f} | "
-            f"{max(r['step'] for r in rs):.2f} | {sum(r['bad'] for r in rs)} | {ratio:.2f} | {dn:+.2f} |"
+            f"{max(r['step'] for r in rs):.2f} | {sum(r['bad'] for r in rs)} | "
+            f"{ratio:.2f} | {dn:+.2f} |"
         )
     print("\n## Generated heteroscedastic sets (200 train, 2000 test points)\n")
     for line in hetero_table([0] if args.quick else [0, 1, 2]):

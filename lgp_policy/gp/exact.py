@@ -334,8 +334,8 @@ class GaussianProcess(ParamsMixin):
 
         alpha = np.broadcast_to(np.asarray(self.alpha, dtype=np.float64), (X.shape[0],))
         has_noise = any(leaf.is_noise for leaf in kernel.leaves())
-        collapse = self.collapse_replicates and (has_noise or np.all(alpha > 0))
-        self._sqdist_cache = None
+        collapse = bool(self.collapse_replicates and (has_noise or np.all(alpha > 0)))
+        self._sqdist_cache: NDArray[np.float64] | None = None
         self._data = _Replicates(X, Yn, collapse)
         if self._data.collapsed:
             a_u = np.zeros(self._data.X.shape[0])
@@ -414,7 +414,8 @@ class GaussianProcess(ParamsMixin):
         """
         K = np.zeros((X.shape[0], X.shape[0]))
         grads: list[tuple[int, NDArray[np.float64]]] = []
-        noise, noise_idx = 0.0, []
+        noise = 0.0
+        noise_idx: list[int] = []
         start = 0
         for leaf in kernel.leaves():
             p = leaf.n_dims
@@ -448,7 +449,8 @@ class GaussianProcess(ParamsMixin):
                 sq = np.sum(X**2, axis=1)
                 d2 = np.maximum(sq[:, None] + sq[None, :] - 2.0 * X @ X.T, 0.0)
             self._sqdist_cache = d2
-        return self._sqdist_cache
+            return d2
+        return self._sqdist_cache  # type: ignore[return-value]
 
     def _lml(self, theta: NDArray[np.float64], eval_gradient: bool):
         """Eq. (4) of the *full* data at ``theta``, via the unique inputs when collapsed."""
@@ -548,7 +550,7 @@ class GaussianProcess(ParamsMixin):
 
     def _predict_normalized(self, X: NDArray[np.float64], return_var: bool = True):
         """Latent mean ``(n, n_targets)`` and variance ``(n,)`` in normalised units."""
-        Ks = self.kernel_(X, self._data.X)  # WhiteNoise contributes nothing to k(X*, X)
+        Ks = np.asarray(self.kernel_(X, self._data.X))  # WhiteNoise: nothing in k(X*, X)
         mean = Ks @ self.alpha_  # Eq. (1)
         if not return_var:
             return mean, None

@@ -218,7 +218,7 @@ def most_likely_em(
         noise_offset: fixed constant mean of the z-processes (``None``: learnt).
     """
     rng = check_random_state(random_state)
-    opt = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
+    opt: dict[str, Any] = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
     lo, hi = (float(b) for b in log_noise_bounds)
 
     def make(k: Kernel, alpha: Any = 0.0) -> GaussianProcess:
@@ -406,6 +406,8 @@ class HeteroscedasticGP(ParamsMixin):
         log_noise_bounds_: bounds of ``log r`` in normalised units.
     """
 
+    estimators_: list[HeteroscedasticGP] | None
+
     def __init__(
         self,
         kernel: Kernel | None = None,
@@ -530,7 +532,7 @@ class HeteroscedasticGP(ParamsMixin):
             raise ValueError(f"This {type(self).__name__} is not fitted yet; call fit(X, y) first")
 
     def _stack(self, method: str, X, **kw):
-        outs = [getattr(est, method)(X, **kw) for est in self.estimators_]
+        outs = [getattr(est, method)(X, **kw) for est in self.estimators_ or []]
         if isinstance(outs[0], tuple):
             return tuple(np.stack(parts, axis=1) for parts in zip(*outs, strict=True))
         return np.stack(outs, axis=1)

@@ -177,7 +177,7 @@ class SquaredExponential(Kernel):
     @property
     def hyperparameter_names(self) -> list[str]:
         if self.anisotropic:
-            return ["variance"] + [f"length_scale[{i}]" for i in range(len(self.length_scale))]
+            return ["variance"] + [f"length_scale[{i}]" for i in range(np.size(self.length_scale))]
         return ["variance", "length_scale"]
 
     def _scaled(self, X: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -8,8 +8,8 @@ from scipy.optimize import approx_fprime
 
 from lgp_policy.gp.exact import GaussianProcess
 from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
-from lgp_policy.gp.local import LocalGP
 from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
+from lgp_policy.gp.local import LocalGP
 
 
 @pytest.fixture
@@ -201,12 +201,12 @@ def test_refuses_data_it_cannot_represent():
             model.fit(X, y * 1e300)
         with pytest.raises(ValueError, match=r"^X has values up to"):
             model.fit(X * 1e200, y)
-        with pytest.raises(ValueError, match="^y contains NaN"):
+        with pytest.raises(ValueError, match=r"^y contains NaN"):
             model.fit(X, np.where(X[:, 0] > 0.5, np.nan, y))
-        with pytest.raises(ValueError, match="^X contains NaN"):
+        with pytest.raises(ValueError, match=r"^X contains NaN"):
             model.fit(np.where(X > 0.5, np.inf, X), y)
     gp = GaussianProcess().fit(X, y)
-    with pytest.raises(ValueError, match="^X contains NaN"):
+    with pytest.raises(ValueError, match=r"^X contains NaN"):
         gp.predict(np.array([[np.nan]]))
 
 
