@@ -168,3 +168,20 @@ def test_map_tasks_keeps_the_order():
     assert map_tasks(_square, items) == [x * x for x in items]
     with pytest.raises(ValueError, match="backend"):
         map_tasks(_square, items, backend="spark")
+
+
+def test_levels_and_perturbations_are_seeded():
+    kw = {
+        "env_id": "hard",  # a level name of gym_coffee.LEVELS
+        "env_kwargs": {"obs_noise": 0.01, "calibration_bias": 0.01, "max_episode_steps": 10},
+        "progress": False,
+    }
+    serial = evaluate_policy_stages(ScriptedPolicy(), 2, **kw)
+    split = evaluate_policy_stages(ScriptedPolicy(), 2, workers=2, **kw)
+    assert split["episodes"] == serial["episodes"]
+    env = EnvFactory(kw["env_id"], kw["env_kwargs"])()
+    try:  # the level and the keywords reach the env
+        assert env.spec.id == gym_coffee.LEVELS["hard"]
+        assert env.unwrapped.obs_noise == 0.01
+    finally:
+        env.close()
