@@ -8,7 +8,7 @@
 This module imports only the standard library at module level: ``gym-coffee --help`` and every
 other subcommand work without the ``rl`` extra, and ``finetune`` says which extra to install.
 
-It is the coffee task's side of :mod:`lgp_policy.residual`: the env factory (with the
+It is the coffee task's side of :mod:`lgp_policy.residual`: the env factory (with the env's
 calibration-bias perturbation), the default gate from the base policy's constraint report, the
 learning curve's evaluation (through :mod:`lgp_policy.app.evaluation`'s one episode loop), the
 figure, and the seeds run locally or as Ray tasks.
@@ -20,11 +20,20 @@ import argparse
 import io
 import json
 import math
-import sys
 import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+from lgp_policy.app._common import (
+    UsageError,
+    add_force_option,
+    check_output_folder,
+    finite_float,
+    input_file,
+    int_range,
+    seed_int,
+)
 
 __all__ = [
     "CURVE_SEED_OFFSET",
@@ -44,37 +53,18 @@ from the demonstration seeds (``seed, seed + 1, ...``) and from ``gym-coffee eva
 seeds (``EVAL_SEED_OFFSET + seed + i``, offset 10 000): the final benchmark is not selected on."""
 PLACED_MARGIN = 0.05
 """Phase after the demonstrations' mean ``cup_placed`` phase at which the gate is fully open."""
-MAX_CALIBRATION_BIAS = 0.05
+MAX_CALIBRATION_BIAS = 0.1
+"""The env's largest ``calibration_bias`` (``gym_coffee.env.MAX_PERTURBATION``), in metres."""
 BACKENDS = ("local", "ray")
 
 
 # ----------------------------------------------------------------------------- argument types
-def _number(
-    kind: Callable[[str], Any], lo: float, hi: float, *, lo_open: bool = False, what: str = ""
-) -> Callable[[str], Any]:
-    """An argparse ``type``: ``kind(text)``, finite and in ``[lo, hi]`` (``(lo, hi]`` if
-    ``lo_open``); argparse reports a failure as ``gym-coffee finetune: error: argument ...``."""
-
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        ok = math.isfinite(value) and (lo < value if lo_open else lo <= value) and value <= hi
-        if not ok:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text}")
-        return value
-
-    return parse
-
-
-_positive = _number(int, 1, 10**9, what="an integer >= 1")
-_non_negative = _number(int, 0, 10**9, what="an integer >= 0 (0: never)")
-_seed = _number(int, 0, 2**31 - 1, what="a seed in [0, 2**31 - 1]")
-_scale = _number(float, 0.0, 2.0, lo_open=True, what="a number in (0, 2] (action units)")
-_phase = _number(float, 0.0, 1.0, what="a phase in [0, 1]")
-_bias = _number(float, 0.0, MAX_CALIBRATION_BIAS, what=f"metres in [0, {MAX_CALIBRATION_BIAS}]")
-_n_envs = _number(int, 1, 64, what="an integer in [1, 64]")
+_positive = int_range(1, 10**9, what="an integer")
+_non_negative = int_range(0, 10**9, what="an integer (0: never)")
+_n_envs = int_range(1, 64, what="an integer")
+_scale = finite_float(0.0, 2.0, lo_open=True)
+_phase = finite_float(0.0, 1.0)
+_bias = finite_float(0.0, MAX_CALIBRATION_BIAS)
 
 
 def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -92,7 +82,12 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
             'pip install "gym-coffee[rl]" (and "gym-coffee[ray]" for --backend ray).'
         ),
     )
-    p.add_argument("policy", metavar="POLICY", help="base GP policy file (from gym-coffee fit)")
+    p.add_argument(
+        "policy",
+        metavar="POLICY",
+        type=input_file(".npz"),
+        help="base GP policy file (from gym-coffee fit)",
+    )
     p.add_argument("--algo", choices=("sac", "td3", "ppo"), default="sac", help="(default: sac)")
     p.add_argument(
         "--timesteps",
@@ -103,7 +98,7 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
     )
     p.add_argument(
         "--seeds",
-        type=_seed,
+        type=seed_int,
         nargs="+",
         default=[0],
         metavar="S",
@@ -164,8 +159,8 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
         type=_bias,
         default=0.0,
         metavar="M",
-        help="perturbation: the observed machine position is off by M metres towards the "
-        "machine's front, so the base aims short of the button (default: 0)",
+        help="perturbation: the observed cup and machine positions are off by M metres, in a "
+        "random direction per episode (the env's calibration_bias; default: 0)",
     )
     p.add_argument(
         "--backend", choices=BACKENDS, default="local", help="where seeds run (default: local)"
@@ -176,7 +171,7 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
         metavar="ADDR",
         help="Ray cluster address for --backend ray (default: start a local Ray)",
     )
-    p.add_argument("--force", action="store_true", help="overwrite existing results in DIR")
+    add_force_option(p, "results of the same seeds in DIR")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_finetune)
     return p
@@ -234,31 +229,6 @@ def _press_phase_start(base: Any, default: float = 0.8) -> float:
     return default
 
 
-class _MachineCalibrationBias:
-    """Observation wrapper factory: the *observed* ``machine_pos`` is shifted ``bias`` metres
-    towards the machine's front (along ``-button_axis``); the physics are untouched.
-
-    Stands in for the env's ``calibration_bias`` keyword until that lands (then this class goes
-    and :func:`build_env_fn` passes the keyword)."""
-
-    @staticmethod
-    def wrap(env: Any, bias: float) -> Any:
-        import gymnasium as gym
-        import numpy as np
-
-        from gym_coffee.env import OBS_SLICES
-
-        pos, yaw_index = OBS_SLICES["machine_pos"], OBS_SLICES["machine_yaw"].start
-
-        def shift(observation: Any) -> Any:
-            obs = np.array(observation, dtype=np.float32, copy=True)
-            yaw = float(obs[yaw_index])
-            obs[pos][:2] -= bias * np.array([np.cos(yaw), np.sin(yaw)], np.float32)
-            return obs
-
-        return gym.wrappers.TransformObservation(env, shift, env.observation_space)
-
-
 class _EnvFactory:
     """Picklable coffee-env factory (``SubprocVecEnv`` and Ray workers call it)."""
 
@@ -271,17 +241,17 @@ class _EnvFactory:
 
         import gym_coffee
 
-        env = gym.make(gym_coffee.ENV_ID, **self.env_kwargs)
-        if self.calibration_bias:
-            env = _MachineCalibrationBias.wrap(env, self.calibration_bias)
-        return env
+        return gym.make(
+            gym_coffee.ENV_ID, calibration_bias=self.calibration_bias, **self.env_kwargs
+        )
 
 
 def build_env_fn(
     calibration_bias: float = 0.0, *, env_kwargs: Mapping[str, Any] | None = None
 ) -> Callable[[], Any]:
-    """A picklable factory for the training/evaluation env, with the observed machine position
-    ``calibration_bias`` metres off towards the machine's front."""
+    """A picklable factory for the training/evaluation env with the env's ``calibration_bias``
+    perturbation (a per-episode constant offset of that length, in a random direction, of the
+    observed cup and machine positions)."""
     if not (math.isfinite(calibration_bias) and 0 <= calibration_bias <= MAX_CALIBRATION_BIAS):
         raise ValueError(
             f"calibration_bias must be in [0, {MAX_CALIBRATION_BIAS}] m, got {calibration_bias}"
@@ -289,41 +259,22 @@ def build_env_fn(
     return _EnvFactory(calibration_bias, env_kwargs)
 
 
-class _LastInfo:
-    """Env wrapper factory that keeps the last step's ``info`` (for ``cup_placed_at_end``)."""
-
-    @staticmethod
-    def wrap(env: Any) -> Any:
-        import gymnasium as gym
-
-        class LastInfo(gym.Wrapper):
-            last_info: Mapping[str, Any] = {}
-
-            def step(self, action: Any) -> Any:
-                out = self.env.step(action)
-                self.last_info = out[-1]
-                return out
-
-        return LastInfo(env)
-
-
 def evaluate_stages(policy: Any, env_fn: Callable[[], Any], seeds: Sequence[int]) -> dict[str, Any]:
-    """Per-stage rates of ``policy`` on one episode per seed, rolled out by the evaluation
-    module's episode loop; also ``cup_placed_at_end`` (a residual that knocks the cup away
-    after placing it loses that one). Returns ``{"episodes", "rates"}``."""
+    """Per-stage rates of ``policy`` on one episode per seed, rolled out by the one episode loop
+    (:func:`lgp_policy.rollout.run_episode`); also ``cup_placed_at_end`` (a residual that knocks
+    the cup away after placing it loses that one). Returns ``{"episodes", "rates"}``."""
     from gym_coffee import STAGES
-    from lgp_policy.app import evaluation
+    from lgp_policy.rollout import run_episode
 
-    run_episode = getattr(evaluation, "run_episode", None) or evaluation._run_episode
-    env = _LastInfo.wrap(env_fn())
-    keys = (*STAGES, "is_success")
-    hits = dict.fromkeys([*keys, "cup_placed_at_end"], 0)
+    flags = (*STAGES, "is_success")
+    hits = dict.fromkeys([*flags, "cup_placed_at_end"], 0)
+    env = env_fn()
     try:
         for seed in seeds:
-            record = run_episode(policy, env, int(seed))
-            for stage in keys:
-                hits[stage] += bool(record[stage])
-            hits["cup_placed_at_end"] += bool(env.last_info.get("cup_placed", False))
+            episode = run_episode(policy, env, int(seed), flags=flags)
+            for flag in flags:
+                hits[flag] += bool(episode.reached.get(flag, False))
+            hits["cup_placed_at_end"] += bool(episode.final_info.get("cup_placed", False))
     finally:
         env.close()
     n = max(len(seeds), 1)
@@ -482,40 +433,32 @@ def _replace_folder(folder: Path, files: Mapping[str, bytes]) -> None:
         raise
 
 
-def _error(message: str) -> int:
-    print(f"gym-coffee finetune: error: {message}", file=sys.stderr)
-    return 2
-
-
 def run_finetune(args: argparse.Namespace) -> int:
-    """Entry point of ``gym-coffee finetune`` (arguments are range-checked by the parser)."""
+    """Entry point of ``gym-coffee finetune``: everything is checked before any training (bad
+    input raises; ``gym-coffee`` prints it as one line and exits with 2)."""
     from lgp_policy.residual.models import require_rl
 
-    try:
-        require_rl()
-    except ImportError as exc:
-        return _error(str(exc))
+    require_rl()  # ImportError naming the extra
     if args.backend == "ray":
         try:
             import ray  # noqa: F401
         except ImportError:
-            return _error('--backend ray needs Ray: pip install "gym-coffee[ray]"')
+            raise ImportError('--backend ray needs Ray: pip install "gym-coffee[ray]"') from None
     elif args.address is not None:
-        return _error("--address needs --backend ray")
+        raise UsageError("argument --address: needs --backend ray")
     if len(set(args.seeds)) != len(args.seeds):
-        return _error(f"argument --seeds: repeated seeds {args.seeds}")
+        raise UsageError(f"argument --seeds: repeated seeds {args.seeds}")
     out = args.out or Path("runs") / f"finetune-{args.algo}"
-    existing = [out / f"seed{s}" for s in args.seeds if (out / f"seed{s}").exists()]
-    if existing and not args.force:
-        return _error(f"{existing[0]} exists; pass --force to overwrite")
+    for seed in args.seeds:
+        check_output_folder("--out", out / f"seed{seed}", force=args.force, owned=())
     base_path = Path(args.policy)
     from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
+    base_bytes = base_path.read_bytes()
     try:
-        base_bytes = base_path.read_bytes()
         GPDemonstrationPolicy.load(io.BytesIO(base_bytes))
-    except (OSError, ValueError) as exc:
-        return _error(f"argument POLICY: cannot load {base_path} as a GP policy: {exc}")
+    except ValueError as exc:
+        raise UsageError(f"argument POLICY: {base_path} is not a GP policy file: {exc}") from exc
     settings = {
         "algo": args.algo,
         "timesteps": args.timesteps,

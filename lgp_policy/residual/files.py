@@ -1,6 +1,6 @@
 """The residual policy file: one ``.npz`` without pickles, read with bounded memory.
 
-Members (each a ``.npy`` inside the zip; nothing else is accepted):
+Members (each a ``.npy`` inside the zip; nothing else is read):
 
 - ``metadata``: a JSON string: ``kind``/``format`` (:data:`RESIDUAL_POLICY_KIND`),
   ``schema_version``, ``algo``, ``hyperparameters`` (with ``policy_kwargs.net_arch``), ``scale``,
@@ -13,29 +13,33 @@ Members (each a ``.npy`` inside the zip; nothing else is accepted):
 - ``obs_norm/mean``, ``obs_norm/var``: the frozen observation normalisation (optional);
 - ``base_file``: the base GP policy's own file, as bytes (optional).
 
-Reading (:func:`read_policy_file`) checks each member's declared size in the zip directory
-before decompressing it, reads only the members above, validates every number of the metadata
+Reading (:func:`read_policy_file`, through :func:`lgp_policy._io.read_npz`) checks each
+member's declared size in the zip directory and its ``.npy`` header before decompressing it,
+reads only the members above (never pickles), validates every number of the metadata
 (finite, in range) and checks the network's layer sizes against the stored weights' shapes
 before any network is built. Nothing from the file is used as a path; nothing is written.
 """
 
 from __future__ import annotations
 
-import contextlib
 import io
-import json
 import math
-import os
 import re
-import tempfile
-import zipfile
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from lgp_policy._io import (
+    FileFormatError,
+    MemberSpec,
+    atomic_save_npz,
+    parse_json,
+    read_json_member,
+    read_npz,
+)
 from lgp_policy.residual.gates import gate_from_config
 from lgp_policy.residual.models import ACTIVATIONS, ALGOS, DEFAULT_HYPERPARAMETERS
 
@@ -62,154 +66,49 @@ MAX_OBS_DIM = 4096
 MAX_ACTION_DIM = 256
 MAX_LAYERS = 8
 MAX_UNITS = 4096
-_FIXED_MEMBERS = {
-    "metadata": MAX_METADATA_BYTES,
-    "space/obs_low": MAX_ARRAY_BYTES,
-    "space/obs_high": MAX_ARRAY_BYTES,
-    "space/act_low": MAX_ARRAY_BYTES,
-    "space/act_high": MAX_ARRAY_BYTES,
-    "obs_norm/mean": MAX_ARRAY_BYTES,
-    "obs_norm/var": MAX_ARRAY_BYTES,
-    "base_file": MAX_BASE_BYTES,
-}
-_PARAM_NAME = re.compile(r"param/[A-Za-z0-9_.]{1,200}")
 
 
-class ResidualPolicyFormatError(ValueError):
+class ResidualPolicyFormatError(FileFormatError):
     """A residual policy file is missing something, is too large or does not fit together."""
 
 
 # ------------------------------------------------------------------------------------ writing
-def _atomic_write(path: Path, write: Callable[[BinaryIO], None], *, force: bool) -> None:
-    """``write(file)`` into a temp file next to ``path``, then rename it over ``path``; an
-    existing file is kept unless ``force``.
-    (To be replaced by ``lgp_policy._io``'s atomic writers when they land.)"""
-    if path.exists() and not force:
-        raise FileExistsError(f"{path} exists; pass force=True (CLI: --force) to replace it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 -> the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
 def write_policy_file(path: Path, arrays: Mapping[str, NDArray[Any]], *, force: bool) -> None:
-    """Write ``arrays`` as one ``.npz`` atomically."""
-    _atomic_write(path, lambda f: np.savez(f, **arrays), force=force)  # type: ignore[arg-type]
-
-
-def write_text_atomic(path: Path, text: str, *, force: bool) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically."""
-    _atomic_write(path, lambda f: _write_all(f, text.encode("utf-8")), force=force)
-
-
-def write_bytes_atomic(path: Path, data: bytes, *, force: bool) -> None:
-    """Write ``data`` to ``path`` atomically."""
-    _atomic_write(path, lambda f: _write_all(f, data), force=force)
-
-
-def _write_all(f: BinaryIO, data: bytes) -> None:
-    f.write(data)
+    """Write ``arrays`` as one ``.npz`` atomically; an existing file is kept unless ``force``."""
+    atomic_save_npz(path, arrays, force=force)
 
 
 # ------------------------------------------------------------------------------------ reading
-def _member_limit(name: str) -> int | None:
-    if name in _FIXED_MEMBERS:
-        return _FIXED_MEMBERS[name]
-    if _PARAM_NAME.fullmatch(name):
-        return MAX_ARRAY_BYTES
-    return None
+_SCHEMA = {
+    "metadata": MemberSpec(dtype="U", ndim=0, max_bytes=MAX_METADATA_BYTES),
+    "space/*": MemberSpec(dtype="f", ndim=1, max_bytes=MAX_ARRAY_BYTES),
+    "obs_norm/*": MemberSpec(
+        dtype="f", ndim=1, required=False, finite=True, max_bytes=MAX_ARRAY_BYTES
+    ),
+    "param/*": MemberSpec(dtype="f", finite=True, max_bytes=MAX_ARRAY_BYTES),
+    "base_file": MemberSpec(dtype="u", ndim=1, required=False, max_bytes=MAX_BASE_BYTES),
+}
 
 
-def _open_zip(source: Path | io.BytesIO, where: str) -> zipfile.ZipFile:
-    try:
-        return zipfile.ZipFile(source)
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise ResidualPolicyFormatError(
-            f"{where} is not a residual policy file (.npz, a zip archive): {exc}"
-        ) from exc
-
-
-def _read_array(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str) -> NDArray[Any]:
-    """One member, whose declared size was checked: ZipExtFile stops at it (bounded memory)."""
-    try:
-        with zf.open(info) as f:
-            raw = f.read(info.file_size + 1)
-        return np.lib.format.read_array(io.BytesIO(raw), allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        raise ResidualPolicyFormatError(
-            f"{where}: member {info.filename!r} is not a readable array: {exc}"
-        ) from exc
-
-
-def _read_members(source: Path | io.BytesIO, where: str) -> dict[str, NDArray[Any]]:
-    with _open_zip(source, where) as zf:
-        infos = zf.infolist()
-        if len(infos) > MAX_PARAMS + len(_FIXED_MEMBERS):
-            raise ResidualPolicyFormatError(f"{where}: too many members ({len(infos)})")
-        total = 0
-        for info in infos:
-            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-            limit = _member_limit(name)
-            if limit is None or not info.filename.endswith(".npy"):
-                raise ResidualPolicyFormatError(
-                    f"{where}: unknown member {info.filename!r} (a residual policy file holds "
-                    f"metadata, param/*, space/*, obs_norm/* and base_file only)"
-                )
-            if info.file_size > limit:
-                raise ResidualPolicyFormatError(
-                    f"{where}: member {name!r} declares {info.file_size} bytes, more than the "
-                    f"{limit} allowed"
-                )
-            total += info.file_size
-        if total > MAX_TOTAL_BYTES:
-            raise ResidualPolicyFormatError(
-                f"{where}: members declare {total} bytes in all, more than {MAX_TOTAL_BYTES}"
-            )
-        return {info.filename[:-4]: _read_array(zf, info, where) for info in infos}
-
-
-def _metadata(arrays: Mapping[str, NDArray[Any]], where: str) -> dict[str, Any]:
-    if "metadata" not in arrays:
-        raise ResidualPolicyFormatError(f"{where}: no 'metadata' member (not a policy file?)")
-    raw = arrays["metadata"]
-    if raw.shape != () or raw.dtype.kind != "U":
-        raise ResidualPolicyFormatError(f"{where}: 'metadata' must be one JSON string")
-    try:
-        meta = json.loads(str(raw), parse_constant=_reject_constant)
-    except (json.JSONDecodeError, ValueError) as exc:
-        raise ResidualPolicyFormatError(f"{where}: metadata is not valid JSON: {exc}") from exc
+def _metadata(raw: NDArray[Any], where: str) -> dict[str, Any]:
+    meta = parse_json(str(raw), where=where, member="metadata")
     if not isinstance(meta, dict):
         raise ResidualPolicyFormatError(f"{where}: metadata must be a JSON object")
     return meta
-
-
-def _reject_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not a number")
 
 
 def read_policy_kind(source: Path | io.BytesIO) -> Any:
     """The ``kind`` (or ``format``) in the JSON metadata of an ``.npz`` policy file; reads the
     ``metadata`` member only (size-checked)."""
     where = str(source) if isinstance(source, Path) else "<in-memory file>"
-    with _open_zip(source, where) as zf:
-        try:
-            info = zf.getinfo("metadata.npy")
-        except KeyError:
-            raise ResidualPolicyFormatError(f"{where}: no 'metadata' member") from None
-        if info.file_size > MAX_METADATA_BYTES:
-            raise ResidualPolicyFormatError(f"{where}: 'metadata' is larger than allowed")
-        meta = _metadata({"metadata": _read_array(zf, info, where)}, where)
+    try:
+        meta = read_json_member(source, "metadata", max_bytes=MAX_METADATA_BYTES)
+    except FileFormatError as exc:
+        raise ResidualPolicyFormatError(str(exc)) from exc
+    if isinstance(source, io.BytesIO):
+        source.seek(0)
+    if not isinstance(meta, dict):
+        raise ResidualPolicyFormatError(f"{where}: metadata must be a JSON object")
     return meta.get("kind", meta.get("format"))
 
 
@@ -419,9 +318,18 @@ def read_policy_file(source: Path | io.BytesIO) -> tuple[dict[str, Any], dict[st
         ResidualPolicyFormatError: naming what is missing, malformed, too large or inconsistent.
     """
     where = str(source) if isinstance(source, Path) else "<in-memory file>"
-    if isinstance(source, Path) and not source.is_file():
-        raise FileNotFoundError(f"no residual policy file at {source}")
-    arrays = _read_members(source, where)
-    meta = _metadata(arrays, where)
+    try:
+        arrays = read_npz(
+            source,
+            schema=_SCHEMA,
+            max_member_bytes=MAX_BASE_BYTES,
+            max_total_bytes=MAX_TOTAL_BYTES,
+            max_entries=MAX_PARAMS + 16,
+        )
+        meta = _metadata(arrays["metadata"], where)
+    except FileFormatError as exc:
+        if isinstance(exc, ResidualPolicyFormatError):
+            raise
+        raise ResidualPolicyFormatError(str(exc)) from exc
     _check_metadata(meta, arrays, where)
     return meta, arrays

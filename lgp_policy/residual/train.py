@@ -14,7 +14,8 @@ import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
 
-from lgp_policy.residual.files import check_hyperparameters, write_text_atomic
+from lgp_policy._io import atomic_write_text
+from lgp_policy.residual.files import check_hyperparameters
 from lgp_policy.residual.gates import PhaseGate
 from lgp_policy.residual.models import build_model, require_rl, resolve_hyperparameters
 from lgp_policy.residual.policy import ObsNormalizer, ResidualPolicy
@@ -277,5 +278,5 @@ def finetune(
             "hyperparameters": hp,
             "curve": curve,
         }
-        write_text_atomic(out / "learning_curve.json", json.dumps(summary, indent=2), force=True)
+        atomic_write_text(out / "learning_curve.json", json.dumps(summary, indent=2), force=True)
     return result

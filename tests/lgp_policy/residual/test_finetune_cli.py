@@ -29,38 +29,41 @@ def gp_policy(tmp_path_factory):
 
 
 BAD_ARGUMENTS = {
-    "--eval-episodes 0": "argument --eval-episodes: expected an integer >= 1, got 0",
+    "--eval-episodes 0": "argument --eval-episodes: expected an integer in [1, 1000000000], got 0",
     "--n-envs 0": "argument --n-envs: expected an integer in [1, 64], got 0",
-    "--gate-start 5": "argument --gate-start: expected a phase in [0, 1], got 5",
-    "--gate-start nan": "argument --gate-start: expected a phase in [0, 1], got nan",
-    "--scale 1e308": "argument --scale: expected a number in (0, 2]",
-    "--scale nan": "argument --scale: expected a number in (0, 2]",
-    "--scale 0": "argument --scale: expected a number in (0, 2]",
-    "--timesteps -5": "argument --timesteps: expected an integer >= 1, got -5",
-    "--calibration-bias -0.002": "argument --calibration-bias: expected metres in [0, 0.05]",
-    "--seeds -1": "argument --seeds: expected a seed",
-    "--eval-freq -1": "argument --eval-freq: expected an integer >= 0",
+    "--gate-start 5": "argument --gate-start: expected a finite number in [0, 1], got '5'",
+    "--gate-start nan": "argument --gate-start: expected a finite number in [0, 1], got 'nan'",
+    "--scale 1e308": "argument --scale: expected a finite number in (0, 2], got '1e308'",
+    "--scale nan": "argument --scale: expected a finite number in (0, 2], got 'nan'",
+    "--scale 0": "argument --scale: expected a finite number in (0, 2], got '0'",
+    "--timesteps -5": "argument --timesteps: expected an integer in [1, 1000000000], got -5",
+    "--calibration-bias -0.002": "argument --calibration-bias: expected a finite number in [0,",
+    "--seeds -1": "argument --seeds: expected a seed in [0, 2147483647], got -1",
+    "--eval-freq -1": "argument --eval-freq: expected an integer (0: never) in [0,",
 }
 
 
 @pytest.mark.parametrize("extra", sorted(BAD_ARGUMENTS))
 def test_bad_arguments_get_one_line_and_exit_2(extra, tmp_path, capsys):
+    policy = tmp_path / "policy.npz"
+    policy.write_bytes(b"")
     with pytest.raises(SystemExit) as exc:
-        main(["finetune", str(tmp_path / "policy.npz"), *extra.split()])
+        main(["finetune", str(policy), *extra.split()])
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert f"gym-coffee finetune: error: {BAD_ARGUMENTS[extra]}" in err
-    assert "Traceback" not in err
-    assert not any(tmp_path.iterdir())
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.npz"]
 
 
 def test_checks_before_work(tmp_path, gp_policy, capsys):
     out = tmp_path / "out"
     (out / "seed3").mkdir(parents=True)
+    (out / "seed3" / "residual_policy.npz").write_bytes(b"old")
     cases = {
         ("--seeds", "1", "1"): "argument --seeds: repeated seeds [1, 1]",
-        ("--address", "ray://x:1"): "--address needs --backend ray",
-        ("--seeds", "3"): f"{out / 'seed3'} exists; pass --force to overwrite",
+        ("--address", "ray://x:1"): "argument --address: needs --backend ray",
+        ("--seeds", "3"): f"argument --out: folder {out / 'seed3'} is not empty",
     }
     for extra, message in cases.items():
         assert main(["finetune", str(gp_policy), "--out", str(out), *extra]) == 2
@@ -68,8 +71,9 @@ def test_checks_before_work(tmp_path, gp_policy, capsys):
     not_a_policy = tmp_path / "notes.npz"
     not_a_policy.write_text("text")
     assert main(["finetune", str(not_a_policy), "--out", str(out)]) == 2
-    assert "error: argument POLICY: cannot load" in capsys.readouterr().err
+    assert "error: argument POLICY: " in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["seed3"]
+    assert (out / "seed3" / "residual_policy.npz").read_bytes() == b"old"
 
 
 TINY = ["--timesteps", "40", "--eval-episodes", "1", "--eval-freq", "0", "--checkpoint-freq", "0"]
@@ -143,3 +147,13 @@ def test_seeds_as_ray_tasks_give_the_local_results(tmp_path, gp_policy, capsys):
     )
     policy = load_any_policy(local / "seed1" / "residual_policy.npz")  # embedded base, from memory
     assert type(policy.base).__name__ == "GPDemonstrationPolicy"
+
+
+def test_calibration_bias_is_the_envs_keyword():
+    from gym_coffee.env import MAX_PERTURBATION
+    from lgp_policy.app.finetune_cli import MAX_CALIBRATION_BIAS, build_env_fn
+
+    assert MAX_CALIBRATION_BIAS == MAX_PERTURBATION
+    env = build_env_fn(0.002)()
+    assert env.unwrapped.calibration_bias == 0.002
+    env.close()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -21,7 +20,6 @@ from residual_helpers import (
     rollout_base,
 )
 
-from lgp_policy.app.finetune_cli import add_finetune_subcommand
 from lgp_policy.residual import (
     RL_EXTRA_HINT,
     PhaseGate,
@@ -131,12 +129,14 @@ def test_require_rl_names_the_extra(monkeypatch):
 
 
 def test_finetune_cli_without_rl_says_which_extra(monkeypatch, capsys, tmp_path):
+    from lgp_policy.app.cli import main
+
     monkeypatch.setitem(sys.modules, "torch", None)
-    parser = argparse.ArgumentParser(prog="gym-coffee")
-    add_finetune_subcommand(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["finetune", str(tmp_path / "policy.npz"), "--timesteps", "10"])
-    assert args.func(args) == 2
-    assert RL_EXTRA_HINT in capsys.readouterr().err
+    policy = tmp_path / "policy.npz"
+    policy.write_bytes(b"")
+    assert main(["finetune", str(policy), "--timesteps", "10"]) == 1
+    err = capsys.readouterr().err
+    assert RL_EXTRA_HINT in err and len(err.strip().splitlines()) == 1
 
 
 def test_modules_import_without_sb3_and_torch():
