@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from contextlib import suppress
 
 import numpy as np
@@ -129,11 +129,14 @@ class Simulation:
                 group, mask = (2, -1 ^ 2) if static else (1, -1)
                 p.setCollisionFilterGroupMask(body, link, group, mask)
 
-    def step(self) -> None:
-        """Advance the physics by ``n_substeps`` physics steps."""
+    def step(self, after_substep: Callable[[], None] | None = None) -> None:
+        """Advance the physics by ``n_substeps`` physics steps, calling ``after_substep`` after
+        each."""
         step = self.p.stepSimulation
         for _ in range(self.n_substeps):
             step()
+            if after_substep is not None:
+                after_substep()
 
     def close(self) -> None:
         """Disconnect from the physics server (safe to call more than once)."""
@@ -157,16 +160,23 @@ class Simulation:
         *,
         use_fixed_base: bool = False,
         package_asset: bool = True,
+        self_collision: bool = False,
     ) -> int:
         """Load a URDF as body ``name``; ``package_asset`` picks gym-coffee's assets over
-        pybullet_data's."""
+        pybullet_data's; ``self_collision`` lets the body's links collide with each other, a link
+        with its parent included."""
         path = os.path.join(ASSETS_DIR if package_asset else pybullet_data.getDataPath(), file_name)
+        flags = pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES
+        if self_collision:
+            flags |= (
+                pybullet.URDF_USE_SELF_COLLISION | pybullet.URDF_USE_SELF_COLLISION_INCLUDE_PARENT
+            )
         body = self.p.loadURDF(
             path,
-            basePosition=list(map(float, base_position)),
-            baseOrientation=list(map(float, base_orientation)),
+            basePosition=[float(v) for v in np.asarray(base_position, dtype=float)],
+            baseOrientation=[float(v) for v in np.asarray(base_orientation, dtype=float)],
             useFixedBase=use_fixed_base,
-            flags=pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES,
+            flags=flags,
         )
         self.bodies[name] = body
         # PyBullet reports and resets a base by its inertial frame; keep the offset to the URDF

@@ -32,8 +32,14 @@ __all__ = ["ScriptedTeacher"]
 GRASP_HEIGHT = 0.046
 #: The fingertips reach this far (m) beyond the grasp point along the hand's z axis.
 FINGERTIP_OFFSET = 0.0072
-#: Comfortable posture for a horizontal gripper (null-space target).
+#: Comfortable posture for a horizontal gripper (null-space target), machine on the robot's left.
 REST_POSTURE = np.array([-0.2, 0.9, 0.0, -1.9, 1.4, 1.5, 1.2])
+#: Its mirror image in the robot's xz-plane, for a machine on the right (hard level): joints 1, 3,
+#: 5 and 7 turn about axes in that plane (negated), 2, 4 and 6 about its normal (kept); the hand
+#: sits at -45 degrees on the flange, hence the quarter turn of joint 7.
+REST_POSTURE_MIRRORED = REST_POSTURE * np.array([-1, 1, -1, 1, -1, 1, -1]) + np.array(
+    [0, 0, 0, 0, 0, 0, np.pi / 2]
+)
 #: Damping (m) of the damped-least-squares inverse kinematics.
 IK_DAMPING = 0.03
 #: Weight of orientation (rad) against position (m) errors.
@@ -144,6 +150,7 @@ class ScriptedTeacher:
         self.variation = float(variation)
         self.kinematics: PandaKinematics = env.unwrapped.kinematics
         self.segments: list[Segment] = []
+        self._rest = REST_POSTURE
         self._last_time = np.inf
         self._plan_obs = np.zeros(0)
         self._jitter: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None
@@ -220,9 +227,11 @@ class ScriptedTeacher:
 
         # Grasp from the side, the hand pointing roughly across the line from the robot base to the
         # cup (the Panda's wrist handles a horizontal gripper best that way) and towards the
-        # machine.
+        # machine: turned left when the machine stands to the cup's left, else right.
+        machine_side = 1.0 if cup[0] * place[1] - cup[1] * place[0] >= 0.0 else -1.0
+        self._rest = REST_POSTURE if machine_side > 0 else REST_POSTURE_MIRRORED
         radial = np.arctan2(cup[1], cup[0])
-        grasp_yaw = radial + np.pi / 2 + u(np.deg2rad(10.0))
+        grasp_yaw = radial + machine_side * np.pi / 2 + u(np.deg2rad(10.0))
         d_grasp = np.array([np.cos(grasp_yaw), np.sin(grasp_yaw), 0.0])
         flip = False  # hand x down: the posture family of REST_POSTURE
         r_grasp = _hand_rotation(d_grasp, flip)
@@ -289,7 +298,7 @@ class ScriptedTeacher:
             q,
             pos_d,
             rot_d,
-            REST_POSTURE,
+            self._rest,
             max_step=MAX_JOINT_STEP,
             damping=IK_DAMPING,
             orientation_weight=ORIENTATION_WEIGHT,
