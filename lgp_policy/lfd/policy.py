@@ -65,6 +65,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, parse_json, read_npz
+from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
 from lgp_policy.lfd.reproduction import (
@@ -91,7 +92,6 @@ FORMAT_NAME = "lgp_policy.gp_demonstration_policy"
 SCHEMA_VERSION = 2
 _READABLE_VERSIONS = (1, 2)
 MODELS = ("local", "heteroscedastic", "exact", "empirical")
-COMBINES = ("product", "calibrated")
 #: Bounds on numbers read from files or given to the constructor.
 MAX_GRID = 100_000
 MAX_STEPS = 100_000
@@ -249,7 +249,11 @@ def hand_points(
     Jw = J6[:, d:]  # (n, 3, k)
     zx, zy, zz = z[:, 0:1], z[:, 1:2], z[:, 2:3]  # omega_i x z for every column i, (n, 3, k)
     cross = np.stack(
-        [Jw[:, 1] * zz - Jw[:, 2] * zy, Jw[:, 2] * zx - Jw[:, 0] * zz, Jw[:, 0] * zy - Jw[:, 1] * zx],
+        [
+            Jw[:, 1] * zz - Jw[:, 2] * zy,
+            Jw[:, 2] * zx - Jw[:, 0] * zz,
+            Jw[:, 0] * zy - Jw[:, 1] * zx,
+        ],
         axis=1,
     )
     J2 = Jp - offset * cross
@@ -287,7 +291,8 @@ class GPDemonstrationPolicy:
     n_steps         ``T``, resampled points per demonstration (encoding), >= 2
     n_grid          points of the precomputed phase table used by ``predict``, >= 2
     model           encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``, ``empirical``
-    combine         ``LocalGP`` combination: ``product`` (Eqs. 8-9) or ``calibrated``
+    combine         ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
+                    the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
     frames          frames to use (default: all in the demonstrations); ``()`` = state only
     alpha           null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
     null_space_std  ``None``: a frame's null-space information = the joint estimate's; or a std
@@ -329,7 +334,7 @@ class GPDemonstrationPolicy:
         n_steps: int = 200,
         n_grid: int = 500,
         model: str = "local",
-        combine: str = "product",
+        combine: str = DEFAULT_COMBINE,
         frames: Sequence[str] | None = None,
         alpha: float = DEFAULT_ALPHA,
         null_space_std: float | None = None,
@@ -349,8 +354,8 @@ class GPDemonstrationPolicy:
         self.n_grid = _integer("n_grid", n_grid, 2, MAX_GRID)
         if model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {model!r}")
-        if combine not in COMBINES:
-            raise ValueError(f"combine must be one of {COMBINES}, got {combine!r}")
+        if combine not in COMBINE_RULES:
+            raise ValueError(f"combine must be one of {COMBINE_RULES}, got {combine!r}")
         self.model, self.combine = model, combine
         if frames is not None and (
             isinstance(frames, str) or not all(isinstance(f, str) for f in frames)
