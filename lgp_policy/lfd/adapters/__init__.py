@@ -202,7 +202,3 @@ class ArrayAdapter:
         return (
             f"ArrayAdapter(name={self.name!r}, obs_dim={self.obs_dim}, frames={self.frame_names})"
         )
-
-
-def _describe(adapter: Any) -> str:
-    return getattr(adapter, "name", type(adapter).__name__)
