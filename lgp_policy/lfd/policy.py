@@ -64,7 +64,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, parse_json, read_npz
+from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, read_npz
 from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
@@ -963,13 +963,15 @@ class GPDemonstrationPolicy:
     ) -> GPDemonstrationPolicy:
         if "metadata" not in arrays:
             raise PolicyFileError("no 'metadata' entry; not a GPDemonstrationPolicy file")
-        try:
-            meta = parse_json(str(arrays["metadata"]), where="metadata")
-        except FileFormatError as exc:
-            raise PolicyFileError(str(exc)) from None
+        try:  # NaN/Infinity parse here and are refused below, naming their field
+            meta = json.loads(str(arrays["metadata"]))
+        except (ValueError, RecursionError) as exc:
+            raise PolicyFileError(f"metadata is not valid JSON ({str(exc)[:200]})") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
             found = meta.get("format") if isinstance(meta, dict) else None
-            raise PolicyFileError(f"not a GPDemonstrationPolicy file (format {found!r})")
+            raise PolicyFileError(
+                f"not a GPDemonstrationPolicy file (metadata 'format' is {found!r})"
+            )
         version = meta.get("schema_version")
         if version not in _READABLE_VERSIONS or isinstance(version, bool):
             raise PolicyFileError(
