@@ -90,11 +90,19 @@ def main() -> None:
     )
     rows = [
         ("fit, all GPs", f"{fit_s:.2f} s", "-", None),
-        ("predict, 1 observation (mean)", f"{single_mean * 1e3:.3f} ms", "<= 0.15 ms",
-         single_mean <= 0.15e-3),
+        (
+            "predict, 1 observation (mean)",
+            f"{single_mean * 1e3:.3f} ms",
+            "<= 0.15 ms",
+            single_mean <= 0.15e-3,
+        ),
         ("predict, 1 observation (median)", f"{np.median(single) * 1e3:.3f} ms", "", None),
-        (f"predict, batch of {args.batch} / row", f"{batch_s / args.batch * 1e6:.1f} us",
-         "<= 20 us", batch_s / args.batch <= 20e-6),
+        (
+            f"predict, batch of {args.batch} / row",
+            f"{batch_s / args.batch * 1e6:.1f} us",
+            "<= 20 us",
+            batch_s / args.batch <= 20e-6,
+        ),
         ("same rows one by one / row", f"{loop_s / 100 * 1e6:.1f} us", "", None),
     ]
     print(f"{'quantity':<38}{'measured':>12}{'target':>12}{'ok':>5}")

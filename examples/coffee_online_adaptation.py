@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from typing import Any
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
@@ -25,7 +26,7 @@ from lgp_policy.app.evaluation import evaluate_policy_stages  # noqa: E402
 from lgp_policy.lfd.adapters.coffee import CoffeeAdapter  # noqa: E402
 from lgp_policy.lfd.policy import GPDemonstrationPolicy  # noqa: E402
 
-PERTURBATIONS = {
+PERTURBATIONS: dict[str, dict[str, Any]] = {
     "clean": {},
     "cup pushed 3-5 cm": {"cup_push": (0.03, 0.05)},
     "obs noise 5 mm": {"obs_noise": 0.005},

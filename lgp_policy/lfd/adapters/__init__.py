@@ -88,7 +88,7 @@ def rotation_from_angle(angle: NDArray[np.float64], dim: int) -> NDArray[np.floa
     a = np.asarray(angle, dtype=float).reshape(-1)
     last_a, last_dim, last_R = _LAST_ROTATION
     if last_dim == dim and last_a is not None and np.array_equal(a, last_a):
-        return last_R  # type: ignore[no-any-return]
+        return last_R
     from scipy.spatial.transform import Rotation
 
     R3 = Rotation.from_euler("z", a[:, None]).as_matrix()
