@@ -8,8 +8,8 @@ Measured in one run, on a local Ray instance with ``--cpus`` CPUs:
    episode loop, BLAS at one thread), mean over ``--episodes`` layouts; ``c_env``: making the env.
 2. ``o``: Ray's per-task overhead for the very task the ``ray`` backend sends
    (``lgp_policy.app.backends._ray_chunk`` with the policy and env factory as object-store
-   references), on warm workers with an empty chunk: (a) the round trip of one task at a time,
-   (b) the wall time per task when ``--tasks`` are in flight at once, times the CPUs (the cost a
+   references, fetched once per worker), on warm workers with an empty chunk: (a) the round
+   trip of one task at a time, (b) the wall time per task when ``--tasks`` are in flight at once, times the CPUs (the cost a
    task adds to a busy cluster), and the driver's CPU seconds per task.
 3. The overhead ratio ``o / (k c_ep)`` for ``k`` episodes per task (the ``--chunk-size``), and the
    backend's own records against the local backend on the same seeds (identical).
@@ -95,17 +95,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         remote = ray.remote(num_cpus=1)(backends._ray_chunk)
-        policy_ref, factory_ref = ray.put(policy), ray.put(factory)
+        refs = [ray.put(policy), ray.put(factory)]
         # warm every worker (imports, env made and cached)
-        ray.get(
-            [remote.remote(policy_ref, factory_ref, [], EVAL_FLAGS) for _ in range(4 * args.cpus)]
-        )
+        ray.get([remote.remote(refs, [], EVAL_FLAGS) for _ in range(4 * args.cpus)])
         t = time.perf_counter()
         for _ in range(args.tasks):
-            ray.get(remote.remote(policy_ref, factory_ref, [], EVAL_FLAGS))
+            ray.get(remote.remote(refs, [], EVAL_FLAGS))
         o_latency = (time.perf_counter() - t) / args.tasks
         t, c = time.perf_counter(), time.process_time()
-        ray.get([remote.remote(policy_ref, factory_ref, [], EVAL_FLAGS) for _ in range(args.tasks)])
+        ray.get([remote.remote(refs, [], EVAL_FLAGS) for _ in range(args.tasks)])
         o_busy = (time.perf_counter() - t) / args.tasks * args.cpus
         o_driver = (time.process_time() - c) / args.tasks
 

@@ -148,25 +148,34 @@ def _pool_context() -> Any:
 
 
 # ------------------------------------------------------------------------------ ray
-_RAY_ENV: dict[str, Any] = {}
+_RAY_WORKER: dict[str, Any] = {}
 
 
-def _ray_chunk(
-    policy: Any, env_factory: Callable[..., Any], seeds: Sequence[int], flags: Sequence[str]
-) -> dict[str, Any]:
-    """One Ray task: a chunk of episodes on this worker's cached env (made on first use)."""
-    from ray import cloudpickle
+def _ray_chunk(refs: Sequence[Any], seeds: Sequence[int], flags: Sequence[str]) -> dict[str, Any]:
+    """One Ray task: a chunk of episodes on this worker's cached policy and env.
+
+    ``refs`` is ``[policy_ref, env_factory_ref]`` inside a list, so that Ray hands over the
+    references rather than the values: a worker fetches and copies the policy once, not per
+    task (the copy is writable; values straight from the object store are read-only arrays, and
+    a policy with memory updates its arrays in place), and makes its env once.
+    """
+    import copy
+
+    import ray
 
     start = time.process_time()
-
-    key = cloudpickle.dumps(env_factory)
-    if _RAY_ENV.get("key") != key:
-        if "env" in _RAY_ENV:
-            _RAY_ENV.pop("env").close()
-        _RAY_ENV["limiter"] = _limit_threads()
-        _RAY_ENV["env"] = env_factory()
-        _RAY_ENV["key"] = key
-    return _chunk_result(_run_seeds(policy, _RAY_ENV["env"], seeds, flags), start)
+    policy_ref, factory_ref = refs
+    if _RAY_WORKER.get("policy_key") != policy_ref.hex():
+        _RAY_WORKER["policy"] = copy.deepcopy(ray.get(policy_ref))
+        _RAY_WORKER["policy_key"] = policy_ref.hex()
+    if _RAY_WORKER.get("env_key") != factory_ref.hex():
+        if "env" in _RAY_WORKER:
+            _RAY_WORKER.pop("env").close()
+        _RAY_WORKER["limiter"] = _limit_threads()
+        _RAY_WORKER["env"] = ray.get(factory_ref)()
+        _RAY_WORKER["env_key"] = factory_ref.hex()
+    records = _run_seeds(_RAY_WORKER["policy"], _RAY_WORKER["env"], seeds, flags)
+    return _chunk_result(records, start)
 
 
 def _ray_init(address: str | None, workers: int) -> Any:
@@ -260,7 +269,8 @@ def start_episodes(
         chunks = _chunks(seeds, n_cpus, chunk_size)
         remote = ray.remote(num_cpus=1)(_ray_chunk)
         policy_ref, factory_ref = ray.put(policy), ray.put(env_factory)
-        pending = [remote.remote(policy_ref, factory_ref, c, flags) for c in chunks]
+        refs = [policy_ref, factory_ref]  # in a list: the tasks get the references
+        pending = [remote.remote(refs, c, flags) for c in chunks]
 
         def collect_ray() -> list[dict]:
             out: list[dict] = []
