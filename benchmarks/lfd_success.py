@@ -13,7 +13,7 @@ layouts of one level under one perturbation:
   demonstration's hand path relative to the cup, then the machine, tracked with IK:
   ``ObjectRelativeReplay``; it uses the draw's first demonstration whatever ``n``, so it runs at
   ``n = 1`` only), ``nearest`` (``NearestDemonstrationReplay``); ablations of the GP policy
-  (``gp-nearest``, ``gp-exact``, ``gp-joint``, ``gp-p3``, ``gp-noalign``) on request
+  (``gp-calibrated``, ``gp-exact``, ``gp-joint``, ``gp-p3``, ``gp-noalign``) on request
   (``--methods``);
 * levels: ``gym_coffee.LEVELS`` (only the easy level where the env has no levels);
 * perturbations (``PERTURBATIONS``, env keywords on every level): none, the cup pushed 3-5 cm
@@ -118,7 +118,7 @@ METHODS: dict[str, tuple[str, Callable[[], Any]]] = {
     "promp": ("ProMP per frame + Alg. 3", _baseline("ProMPPolicy")),
     "objrel": ("object-relative replay of 1 demo (IK)", _baseline("ObjectRelativeReplay")),
     "nearest": ("nearest-demonstration joint replay", _baseline("NearestDemonstrationReplay")),
-    "gp-nearest": ("GP policy, calibrated LocalGP combination", _gp(combine="nearest")),
+    "gp-calibrated": ("GP policy, calibrated LocalGP combination", _gp(combine="calibrated")),
     "gp-exact": ("GP policy, one exact homoscedastic GP", _gp(model="exact")),
     "gp-joint": ("GP policy, joint frame only", _gp(frames=())),
     "gp-p3": ("GP policy, grasp point only (p = 3)", _gp(approach_offset=None)),

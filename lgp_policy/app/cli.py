@@ -113,7 +113,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     if failed:
         print(f"the teacher failed on seeds {failed}; they were skipped")
     if args.video is not None:
-        path = record_video(args.env_id, demos[0], args.video, progress=not args.no_progress)
+        path = record_video(
+            args.env_id, demos[0], args.video, progress=not args.no_progress, overwrite=args.force
+        )
         print(f"wrote {path}")
     return 0
 
@@ -134,6 +136,7 @@ def record_video(
     max_frames: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> Path:
     """Replay ``demo``'s actions in a fresh ``rgb_array`` env and write every ``stride``-th frame.
 
@@ -170,7 +173,7 @@ def record_video(
         env.close()
         if bar is not None:
             bar.close()
-    return write_video(path, frames, fps=fps)
+    return write_video(path, frames, fps=fps, overwrite=overwrite)
 
 
 def _add_debug_option(p: argparse.ArgumentParser, default: Any) -> None:

@@ -23,8 +23,10 @@ Per step, for each observation:
 
 1. **phase**: ``s = (tau + lookahead * control_dt) / duration`` with ``tau`` the episode's task
    clock (the observation's time, or counted control steps), clipped to ``[0, 1]``. The clock
-   *waits* (event-driven phase) while an event the demonstrations reached by phase ``s_e``
-   (e.g. ``cup_held``) has not been observed yet in this episode, for at most ``max_wait`` s;
+   *waits* (event-driven phase): just before each demonstrated gripper event (closing, opening)
+   until the grasp point is within ``reach_tolerance`` of the target of the frame that is
+   tightest there, and while an event the demonstrations reached by phase ``s_e`` (e.g.
+   ``cup_held``) has not been observed yet in this episode; at most ``max_wait`` s in all;
 2. **frames**: each frame's pose is filtered over the episode (a static-object Kalman filter with
    measurement std ``frame_noise``; a jump of the object is detected and followed); where the
    adapter says a frame is not observed (a grasped cup) its last estimate is kept;
@@ -137,6 +139,7 @@ class PolicyState:
         last_time: ``(n,)`` time of the last observation (s).
         waited: ``(n,)`` time spent waiting for events (s).
         seen: per event, ``(n,)`` whether it has been observed in this episode.
+        reached: per gripper landmark (index), ``(n,)`` whether the hand reached its target.
         position, variance, rotation: per frame, the filtered pose ``(n, d)``, its variance
             ``(n,)`` and the last observed rotation ``(n, d, d)``.
         outliers: per frame, ``(n,)`` consecutive observations outside the filter's gate.
@@ -148,6 +151,7 @@ class PolicyState:
     waited: NDArray[np.float64]
     fresh: NDArray[np.bool_]
     seen: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
+    reached: dict[int, NDArray[np.bool_]] = field(default_factory=dict)
     position: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     variance: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     rotation: dict[str, NDArray[np.float64]] = field(default_factory=dict)
@@ -289,7 +293,11 @@ class GPDemonstrationPolicy:
                     approach axis (task vector p = 6), or ``None``: position only (the paper)
     frame_noise     std (m) of the observed frame positions for the online filter; 0 = trust
                     every observation
-    max_wait        s; longest time the phase waits for a demonstrated event; 0 = clock only
+    max_wait        s; longest time per episode the phase waits (for the hand to reach the
+                    target before a gripper event, and for a demonstrated event); 0 = clock only
+    reach_tolerance m; before a demonstrated gripper event the phase waits until the grasp point
+                    is this close (or within 3 predicted std) to the target of the tightest frame
+                    at that event
     encoder_kwargs  extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
     =============== ===================================================================
 
@@ -299,6 +307,8 @@ class GPDemonstrationPolicy:
         demonstration duration (s); ``control_dt_``: control period (s).
         approach_offset_: the resolved approach offset (m or ``None``).
         event_phases_: per event, the latest phase at which a demonstration first showed it.
+        landmarks_: ``[(phase, frame), ...]``: the aligned gripper events and the frame that is
+            tightest at each (where the phase waits for the hand to arrive).
         constraints_: the constraint report (see :meth:`constraint_report`).
         encoder_: the fitted encoder (only after ``fit``; not saved).
     """
@@ -322,6 +332,7 @@ class GPDemonstrationPolicy:
         align: str | None = "gripper",
         frame_noise: float = 0.005,
         max_wait: float = 2.0,
+        reach_tolerance: float = 0.01,
         encoder_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         self.robot = robot
@@ -358,6 +369,7 @@ class GPDemonstrationPolicy:
         self.align = align
         self.frame_noise = _finite("frame_noise", frame_noise, 0.0, 10.0, low_open=False)
         self.max_wait = _finite("max_wait", max_wait, 0.0, 1e4, low_open=False)
+        self.reach_tolerance = _finite("reach_tolerance", reach_tolerance, 0.0, 10.0)
         self.encoder_kwargs = None if encoder_kwargs is None else dict(encoder_kwargs)
 
     # -------------------------------------------------------------- parameters
@@ -378,6 +390,7 @@ class GPDemonstrationPolicy:
             "align": self.align,
             "frame_noise": self.frame_noise,
             "max_wait": self.max_wait,
+            "reach_tolerance": self.reach_tolerance,
             "encoder_kwargs": None if self.encoder_kwargs is None else dict(self.encoder_kwargs),
         }
 
@@ -505,6 +518,14 @@ class GPDemonstrationPolicy:
             _event_phases(tr, phase_of(tr.time, landmarks[i] if landmarks else None, lp))
             for i, tr in enumerate(trajs)
         ]
+        self.landmarks_ = []
+        if landmarks is not None and names:
+            for s_l in encoder.landmark_phases_:
+                spread = {
+                    n: float(np.sqrt(np.mean(encoder.predict([s_l], n)[1][0, : robot.dim] ** 2)))
+                    for n in names
+                }
+                self.landmarks_.append((float(s_l), min(spread, key=spread.__getitem__)))
         self.event_phases_ = {}
         for ev in trajs[0].events:
             vals = [p.get(ev) for p in self.stage_phases_]
@@ -573,35 +594,68 @@ class GPDemonstrationPolicy:
         return float(s[0]) if single else s
 
     def _advance(
-        self, state: PolicyState, t_obs: NDArray[np.float64] | None, observed: Any
-    ) -> NDArray[np.float64]:
-        """Update the per-environment clock, events and frame filters; return the task clock."""
+        self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Update the per-environment clock, frame filters and events.
+
+        ``hand``: the grasp point ``(n, d)`` (for the waits before gripper events).
+
+        Returns:
+            ``(clock (n,), aim (n,))``: the task clock, and for rows waiting to reach the target
+            of a gripper event the phase of that event (the motion aims there while the gripper
+            keeps its command), else NaN.
+        """
+        t_obs = observed.time
+        n = len(state)
         fresh = state.fresh.copy()
         if t_obs is not None:
             fresh |= t_obs < state.last_time - 1e-9
             dt = np.where(fresh, 0.0, t_obs - state.last_time)
             now = t_obs
+            clock = np.where(fresh, t_obs, state.clock + dt)
         else:
             dt = np.where(fresh, 0.0, self.control_dt_)
             now = np.where(fresh, 0.0, state.last_time + self.control_dt_)
-        start = np.where(fresh, now if t_obs is not None else 0.0, 0.0)
-        clock = np.where(fresh, start, state.clock + dt)
+            clock = np.where(fresh, 0.0, state.clock + dt)
+        self._filter_frames(state, fresh, observed)
         waited = np.where(fresh, 0.0, state.waited)
-        hold = np.zeros(len(clock), dtype=bool)
-        for ev, s_e in self.event_phases_.items():
-            flags = observed.events.get(ev)
-            if flags is None or self.max_wait <= 0:
-                continue
-            seen = np.where(fresh, False, state.seen.get(ev, np.zeros(len(clock), bool))) | flags
-            state.seen[ev] = seen
-            hold |= ~seen & (clock / self.duration_ >= s_e)
+        s = clock / self.duration_
+        hold = np.zeros(n, dtype=bool)
+        aim = np.full(n, np.nan)
+        if self.max_wait > 0:
+            lead = (self.lookahead + 1.0) * self.control_dt_ / self.duration_
+            for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
+                reached = np.where(fresh, False, state.reached.get(j, np.zeros(n, bool)))
+                due = ~reached & (s >= s_l - lead)
+                if np.any(due):
+                    mcol, vcol = self._cols[frame]
+                    row = self._rows(np.full(n, s_l))
+                    d = hand.shape[1]
+                    target, _ = frame_targets(
+                        state.position[frame], state.rotation[frame], row[:, mcol][:, :d],
+                        row[:, vcol][:, :d],
+                    )
+                    # a frame that is loose there (demonstrations disagree) asks for no precision
+                    spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
+                    tol = np.maximum(self.reach_tolerance, 3.0 * spread)
+                    close = np.linalg.norm(hand - target, axis=1) <= tol
+                    reached = reached | (due & close)
+                    hold |= due & ~close
+                    aim = np.where(due & ~close & np.isnan(aim), s_l, aim)
+                state.reached[j] = reached
+            for ev, s_e in self.event_phases_.items():
+                flags = observed.events.get(ev)
+                if flags is None:
+                    continue
+                seen = np.where(fresh, False, state.seen.get(ev, np.zeros(n, bool))) | flags
+                state.seen[ev] = seen
+                hold |= ~seen & (s >= s_e)
         hold &= (waited + dt <= self.max_wait) & ~fresh
         state.clock = np.where(hold, clock - dt, clock)
         state.waited = np.where(hold, waited + dt, waited)
         state.last_time = now
-        self._filter_frames(state, fresh, observed)
-        state.fresh = np.zeros(len(clock), dtype=bool)
-        return state.clock
+        state.fresh = np.zeros(n, dtype=bool)
+        return state.clock, np.where(hold, aim, np.nan)
 
     def _filter_frames(self, state: PolicyState, fresh: NDArray[np.bool_], observed: Any) -> None:
         r = self.frame_noise**2
@@ -670,19 +724,28 @@ class GPDemonstrationPolicy:
         n = obs.shape[0]
         mem, own = self._state_for(n, state, episode_start)
         observed = self.adapter_.read(obs)
-        clock = self._advance(mem, observed.time, observed)
+        q = np.asarray(observed.state, dtype=float)
+        if q.shape != (n, self.robot_.n_joints):
+            raise ValueError(
+                f"the adapter read a state of shape {q.shape}; the robot has "
+                f"{self.robot_.n_joints} coordinates"
+            )
+        x = J = None
+        if len(self.frame_names_) > 1:
+            x, J = hand_points(self.robot_, q, self.approach_offset_)
+        clock, aim = self._advance(mem, observed, None if x is None else x[:, : self.robot_.dim])
         if own:
             self._memory = mem
         s = (clock + self.lookahead * self.control_dt_) / self.duration_
         row = self._rows(s)
-        q = np.asarray(observed.state, dtype=float)
         k = q.shape[1]
         jm, jv = self._cols[JOINT_FRAME]
+        grip_row = row
+        if np.any(~np.isnan(aim)):  # waiting to reach a gripper event's target: aim at it
+            row = self._rows(np.where(np.isnan(aim), s, aim))
         joint_mean, joint_var = row[:, jm], row[:, jv]
         targets = []
-        x = J = None
-        if len(self.frame_names_) > 1:
-            x, J = hand_points(self.robot_, q, self.approach_offset_)
+        if x is not None:
             for name in self.frame_names_[1:]:
                 mcol, vcol = self._cols[name]
                 targets.append(
@@ -701,7 +764,7 @@ class GPDemonstrationPolicy:
             ridge=DEFAULT_RIDGE,
             return_cov=cov,
         )
-        gripper = joint_mean[:, k] if joint_mean.shape[1] > k else np.zeros(n)
+        gripper = grip_row[:, jm][:, k] if joint_mean.shape[1] > k else np.zeros(n)
         action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
         return single, mem, np.clip(s, 0.0, 1.0), action, dq, fused, gripper, row
 
@@ -831,6 +894,7 @@ class GPDemonstrationPolicy:
             "alignment": getattr(self, "alignment_", "none"),
             "stage_phases": getattr(self, "stage_phases_", []),
             "event_phases": self.event_phases_,
+            "landmarks": [[s_l, f] for s_l, f in self.landmarks_],
             "constraints": self.constraints_,
         }
         arrays: dict[str, NDArray[Any]] = {
@@ -972,6 +1036,17 @@ class GPDemonstrationPolicy:
                 _finite(f"event_phases[{ev!r}]", s_e, 0.0, 1.0, low_open=False)
             except ValueError as exc:
                 raise PolicyFileError(str(exc)) from None
+        landmarks = meta.get("landmarks", [])
+        if not isinstance(landmarks, list) or not all(
+            isinstance(m, list)
+            and len(m) == 2
+            and isinstance(m[0], (int, float))
+            and not isinstance(m[0], bool)
+            and 0.0 <= m[0] <= 1.0
+            and m[1] in names[1:]
+            for m in landmarks
+        ):
+            raise PolicyFileError("'landmarks' must be a list of [phase in [0, 1], fitted frame]")
         stage_phases = meta.get("stage_phases", [])
         if not isinstance(stage_phases, list) or not all(
             isinstance(p, dict)
@@ -986,6 +1061,7 @@ class GPDemonstrationPolicy:
         policy.duration_ = duration
         policy.control_dt_ = control_dt
         policy.event_phases_ = {str(k): float(v) for k, v in events.items()}
+        policy.landmarks_ = [(float(m[0]), str(m[1])) for m in landmarks]
         n_demos = meta.get("n_demos", 0)
         policy.n_demos_ = int(n_demos) if isinstance(n_demos, int) and n_demos >= 0 else 0
         policy.alignment_ = str(meta.get("alignment", "none"))[:200]
