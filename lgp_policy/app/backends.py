@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import socket
 import sys
 import time
@@ -124,6 +125,9 @@ _WORKER: dict[str, Any] = {}
 
 
 def _pool_init(policy: Any, env_factory: Callable[..., Any]) -> None:
+    # Ctrl-C reaches the whole process group: the driver stops the workers (see collect_pool);
+    # a worker that caught it would hand it back as a chunk's result and go on with the next
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _WORKER["clock"] = 0.0  # a forked worker's CPU clock starts at 0: its set-up counts too
     _WORKER["limiter"] = _limit_threads()
     _WORKER["policy"] = policy
@@ -275,12 +279,17 @@ def start_episodes(
         def collect_ray() -> list[dict]:
             out: list[dict] = []
             todo = list(pending)
-            while todo:
-                ready, todo = ray.wait(todo, num_returns=1)
-                for ref in ready:
-                    chunk = ray.get(ref)
-                    out.append(chunk)
-                    done(len(chunk["records"]))
+            try:
+                while todo:
+                    ready, todo = ray.wait(todo, num_returns=1)
+                    for ref in ready:
+                        chunk = ray.get(ref)
+                        out.append(chunk)
+                        done(len(chunk["records"]))
+            except BaseException:  # Ctrl-C or a failed task: cancel what is left
+                for ref in todo:
+                    ray.cancel(ref, force=True)
+                raise
             return out
 
         return EpisodeJob(seeds, collect_ray)
@@ -323,8 +332,12 @@ def start_episodes(
                     chunk = f.result()
                     out.append(chunk)
                     done(len(chunk["records"]))
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException:  # Ctrl-C or a failed chunk: stop the workers now, not after
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown(wait=True)
         return out
 
     return EpisodeJob(seeds, collect_pool)
@@ -371,6 +384,8 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``--backend {local,ray}``, ``--address ADDR`` and ``--chunk-size N`` to a command
     (``gym-coffee evaluate``); pass them on as ``backend=args.backend,
     address=args.address, chunk_size=args.chunk_size``."""
+    from lgp_policy.app._common import positive_int
+
     g = parser.add_argument_group("where episodes run")
     g.add_argument(
         "--backend",
@@ -387,7 +402,7 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--chunk-size",
-        type=int,
+        type=positive_int,
         default=None,
         metavar="N",
         help="episodes per job/task (default: about 4 chunks per worker)",
