@@ -51,7 +51,7 @@ def _plt() -> Any:
 def _stage_lines(ax: Any, policy: Any) -> None:
     phases = policy.constraints_.get("stage_phases", {}) if hasattr(policy, "constraints_") else {}
     for stage, s in phases.items():
-        if s is None:
+        if s is None or stage not in STAGE_LABELS:  # the task stages only (no gripper events)
             continue
         ax.axvline(s, color="k", ls=":", lw=0.8)
         ax.text(
