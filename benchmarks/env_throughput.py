@@ -1,6 +1,6 @@
 """Environment throughput: steps/s, real-time factor and reset time, next to panda-gym.
 
-Measures, in one process and one run, for ``gym_coffee/CoffeeTask-v0`` and panda-gym's
+Measures, in one process and one run, for ``gym_coffee.ENV_ID`` and panda-gym's
 ``PandaPickAndPlace-v3`` (when ``panda_gym`` imports; otherwise that column is skipped with a note):
 
 - steps/s and real-time factor (simulated seconds per wall-clock second) with uniformly random
@@ -35,6 +35,7 @@ from typing import Any
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import gymnasium as gym
+import numpy as np
 
 import gym_coffee
 
@@ -112,7 +113,7 @@ def time_render(env: gym.Env, n: int, seed: int) -> tuple[float, tuple[int, ...]
     for _ in range(n):
         env.step(env.action_space.sample())
     step_only = (time.process_time() - t0) / n
-    return max(step_and_render - step_only, 0.0), tuple(frame.shape)
+    return max(step_and_render - step_only, 0.0), tuple(np.asarray(frame).shape)
 
 
 @contextlib.contextmanager

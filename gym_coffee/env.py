@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -12,6 +12,7 @@ from gymnasium.utils import EzPickle
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from gym_coffee import STAGES
 from gym_coffee._checks import check_bool, check_choice, check_int, check_real, check_vector
 from gym_coffee.kinematics import PandaKinematics
 from gym_coffee.robot import (
@@ -279,14 +280,14 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     With ``gym.vector.AsyncVectorEnv(..., context="spawn")`` or ``"forkserver"`` (Python 3.14's
     default on Linux) the workers are fresh interpreters: make the env with
-    ``gym.make("gym_coffee:gym_coffee/CoffeeTask-v0")`` or ``import gym_coffee`` inside the env
+    ``gym.make("gym_coffee:" + gym_coffee.ENV_ID)`` or ``import gym_coffee`` inside the env
     function, so that the id is registered there.
 
     ## Version History
     * v0: first version.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {
+    metadata: dict[str, Any] = {  # noqa: RUF012  (Gymnasium's class attribute)
         "render_modes": ["human", "rgb_array"],
         "render_fps": round(1.0 / CONTROL_DT),
     }
@@ -637,9 +638,7 @@ class CoffeeEnv(gym.Env, EzPickle):
             terms["success"] = 1.0 if success else 0.0
         info: dict[str, Any] = {
             "is_success": success,
-            "cup_grasped": bool(self._grasped),
-            "cup_placed": placed,
-            "button_pressed": bool(self._pressed),
+            **dict(zip(STAGES, (bool(self._grasped), placed, bool(self._pressed)), strict=True)),
             "stage": int(stage),
             "layout": dict(self._layout_info),
         }

@@ -203,16 +203,11 @@ class Simulation:
         self._inertial_offset[name] = np.array(self.p.getDynamicsInfo(body, -1)[3])
         return body
 
-    def remove_body(self, name: str) -> None:
-        """Remove body ``name`` from the world."""
-        self.p.removeBody(self.bodies.pop(name))
-        self._inertial_offset.pop(name, None)
-
     def set_base_pose(self, name: str, position: ArrayLike, orientation: ArrayLike) -> None:
         """Put the base's URDF link frame at ``position`` with quaternion ``orientation`` (xyzw),
         at rest."""
         position = np.asarray(position, dtype=float)
-        orientation = [float(v) for v in orientation]
+        orientation = [float(v) for v in np.asarray(orientation, dtype=float)]
         offset = self._inertial_offset[name]
         if offset.any():
             rot = np.array(self.p.getMatrixFromQuaternion(orientation)).reshape(3, 3)
@@ -229,9 +224,6 @@ class Simulation:
             rot = np.array(self.p.getMatrixFromQuaternion(quat)).reshape(3, 3)
             pos = pos - rot @ offset
         return pos, np.array(quat)
-
-    def get_matrix_from_quaternion(self, quat: ArrayLike) -> NDArray[np.float64]:
-        return np.array(self.p.getMatrixFromQuaternion([float(v) for v in quat])).reshape(3, 3)
 
     def get_base_velocity(self, name: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         lin, ang = self.p.getBaseVelocity(self.bodies[name])
@@ -332,7 +324,7 @@ class Simulation:
         headless). ``shadows`` costs about twice the time (TinyRenderer draws the scene twice)."""
         p = self.p
         view = p.computeViewMatrixFromYawPitchRoll(
-            cameraTargetPosition=list(map(float, target)),
+            cameraTargetPosition=[float(v) for v in np.asarray(target, dtype=float)],
             distance=float(distance),
             yaw=float(yaw),
             pitch=float(pitch),
@@ -363,12 +355,5 @@ class Simulation:
                 cameraDistance=float(distance),
                 cameraYaw=float(yaw),
                 cameraPitch=float(pitch),
-                cameraTargetPosition=list(map(float, target)),
+                cameraTargetPosition=[float(v) for v in np.asarray(target, dtype=float)],
             )
-
-    # ------------------------------------------------------------------ helpers
-    def get_euler_from_quaternion(self, quat: ArrayLike) -> NDArray[np.float64]:
-        return np.array(self.p.getEulerFromQuaternion(list(map(float, quat))))
-
-    def get_quaternion_from_euler(self, euler: ArrayLike) -> NDArray[np.float64]:
-        return np.array(self.p.getQuaternionFromEuler(list(map(float, euler))))
