@@ -102,7 +102,8 @@ def record(env: gym.Env, seed: int) -> Trajectory:
     expert = ScriptedExpert()
     expert.reset()
     obs, _ = env.reset(seed=seed)
-    rows, actions, done, info = [obs], [], False, {}
+    rows, actions, done = [obs], [], False
+    info: dict[str, Any] = {}
     while not done:
         a = expert.act(obs)
         actions.append(a)
@@ -142,7 +143,8 @@ def make_adapter() -> ArrayAdapter:
 
 def collect(env: gym.Env, n: int, seed: int) -> TrajectorySet:
     """``n`` successful expert demonstrations from seeds ``seed, seed + 1, ...``."""
-    demos, s = [], seed
+    demos: list[Trajectory] = []
+    s = seed
     while len(demos) < n:
         tr = record(env, s)
         s += 1
@@ -158,7 +160,8 @@ def success_rate(env: gym.Env, act: Any, n: int, seed: int) -> float:
     ok = 0
     for i in range(n):
         obs, _ = env.reset(seed=seed + i)
-        done, first, info = False, True, {}
+        done, first = False, True
+        info: dict[str, Any] = {}
         while not done:
             obs, _r, terminated, truncated, info = env.step(act(obs, first))
             first = False

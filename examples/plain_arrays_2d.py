@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -60,7 +61,7 @@ class PickPlace2D:
             [[self.t * DT], self.hand, [self.closed, self.holding], self.object, self.goal]
         )
 
-    def step(self, action: NDArray[np.float64]) -> tuple[NDArray[np.float64], bool]:
+    def step(self, action: NDArray[Any]) -> tuple[NDArray[np.float64], bool]:
         a = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)
         self.hand = self.hand + a[:2] * MAX_STEP
         was_closed, self.closed = self.closed, bool(a[2] < 0)
@@ -112,14 +113,18 @@ def teacher(obs: NDArray[np.float64], state: dict) -> NDArray[np.float64]:
 def record(seed: int) -> Trajectory:
     """One teacher demonstration as a :class:`Trajectory` (plain arrays)."""
     env = PickPlace2D()
-    obs, done, state = env.reset(seed), False, {}
+    state: dict[str, Any] = {}
+    obs, done = env.reset(seed), False
     rows, actions = [obs], []
     while not done:
         a = teacher(obs, state)
         actions.append(a)
         obs, done = env.step(a)
         rows.append(obs)
-        if state.get("stage") == "retreat" and np.linalg.norm(obs[1:3] - (obs[7:9] + RETREAT)) < 1e-3:
+        if (
+            state.get("stage") == "retreat"
+            and np.linalg.norm(obs[1:3] - (obs[7:9] + RETREAT)) < 1e-3
+        ):
             break
     actions.append(actions[-1])
     o = np.array(rows)
@@ -184,8 +189,10 @@ def main() -> None:
     held_out = 10_000 + args.seed
     rate = evaluate(policy, args.episodes, held_out)
     print(f"fit: {fit_s:.2f} CPU s, tight: {[iv['label'] for iv in policy.constraint_intervals()]}")
-    print(f"held-out success ({args.episodes} layouts): policy {rate:.0%}, "
-          f"teacher {teacher_success(args.episodes, held_out):.0%}")
+    print(
+        f"held-out success ({args.episodes} layouts): policy {rate:.0%}, "
+        f"teacher {teacher_success(args.episodes, held_out):.0%}"
+    )
 
 
 if __name__ == "__main__":

@@ -65,13 +65,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, parse_json, read_npz
+from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
 from lgp_policy.lfd.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
-    MIN_VARIANCE,
     frame_targets,
     limit_step,
     reproduction_step,
@@ -92,7 +92,6 @@ FORMAT_NAME = "lgp_policy.gp_demonstration_policy"
 SCHEMA_VERSION = 2
 _READABLE_VERSIONS = (1, 2)
 MODELS = ("local", "heteroscedastic", "exact", "empirical")
-COMBINES = ("product", "calibrated")
 #: Bounds on numbers read from files or given to the constructor.
 MAX_GRID = 100_000
 MAX_STEPS = 100_000
@@ -205,12 +204,18 @@ def _finite(name: str, value: Any, low: float, high: float, *, low_open: bool = 
     ok = math.isfinite(v) and (v > low if low_open else v >= low) and v <= high
     if not ok or isinstance(value, bool):
         bracket = "(" if low_open else "["
-        raise ValueError(f"{name} must be a finite number in {bracket}{low}, {high}], got {value!r}")
+        raise ValueError(
+            f"{name} must be a finite number in {bracket}{low}, {high}], got {value!r}"
+        )
     return v
 
 
 def _integer(name: str, value: Any, low: int, high: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not low <= value <= high
+    ):
         raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
     return int(value)
 
@@ -242,8 +247,16 @@ def hand_points(
         return p, Jp
     z = R[:, :, -1]
     Jw = J6[:, d:]  # (n, 3, k)
-    cross = np.cross(np.swapaxes(Jw, 1, 2), z[:, None, :])  # omega_i x z, (n, k, 3)
-    J2 = Jp - offset * np.swapaxes(cross, 1, 2)
+    zx, zy, zz = z[:, 0:1], z[:, 1:2], z[:, 2:3]  # omega_i x z for every column i, (n, 3, k)
+    cross = np.stack(
+        [
+            Jw[:, 1] * zz - Jw[:, 2] * zy,
+            Jw[:, 2] * zx - Jw[:, 0] * zz,
+            Jw[:, 0] * zy - Jw[:, 1] * zx,
+        ],
+        axis=1,
+    )
+    J2 = Jp - offset * cross
     return np.concatenate([p, p - offset * z], axis=1), np.concatenate([Jp, J2], axis=1)
 
 
@@ -272,14 +285,14 @@ class GPDemonstrationPolicy:
     Args (keyword-only after ``robot`` and ``adapter``):
 
     =============== ===================================================================
-    robot           kinematics (:class:`~lgp_policy.lfd.robots.RobotModel`); default
-                    ``adapter.robot``
-    adapter         how observations are read (:class:`~lgp_policy.lfd.adapters.ObservationAdapter`);
+    robot           kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
+    adapter         how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
                     default the gym-coffee adapter
     n_steps         ``T``, resampled points per demonstration (encoding), >= 2
     n_grid          points of the precomputed phase table used by ``predict``, >= 2
     model           encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``, ``empirical``
-    combine         ``LocalGP`` combination: ``product`` (Eqs. 8-9) or ``calibrated``
+    combine         ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
+                    the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
     frames          frames to use (default: all in the demonstrations); ``()`` = state only
     alpha           null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
     null_space_std  ``None``: a frame's null-space information = the joint estimate's; or a std
@@ -321,7 +334,7 @@ class GPDemonstrationPolicy:
         n_steps: int = 200,
         n_grid: int = 500,
         model: str = "local",
-        combine: str = "product",
+        combine: str = DEFAULT_COMBINE,
         frames: Sequence[str] | None = None,
         alpha: float = DEFAULT_ALPHA,
         null_space_std: float | None = None,
@@ -341,8 +354,8 @@ class GPDemonstrationPolicy:
         self.n_grid = _integer("n_grid", n_grid, 2, MAX_GRID)
         if model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {model!r}")
-        if combine not in COMBINES:
-            raise ValueError(f"combine must be one of {COMBINES}, got {combine!r}")
+        if combine not in COMBINE_RULES:
+            raise ValueError(f"combine must be one of {COMBINE_RULES}, got {combine!r}")
         self.model, self.combine = model, combine
         if frames is not None and (
             isinstance(frames, str) or not all(isinstance(f, str) for f in frames)
@@ -399,8 +412,10 @@ class GPDemonstrationPolicy:
         self.adapter_ = self.adapter if self.adapter is not None else _coffee_adapter()
         self.robot_ = self.robot if self.robot is not None else self.adapter_.robot
         self.gripper_ = getattr(self.adapter_, "gripper", None)
-        step = getattr(self.adapter_.action_map, "max_step", None)
-        self.max_joint_step_ = float(self.max_joint_step if self.max_joint_step is not None else step)
+        step = self.max_joint_step
+        self.max_joint_step_ = float(
+            step if step is not None else self.adapter_.action_map.max_step
+        )
 
     def _trajectories(self, demos: Any) -> TrajectorySet:
         if isinstance(demos, TrajectorySet):
@@ -466,13 +481,15 @@ class GPDemonstrationPolicy:
         for n in names:
             d = trajs[0].frames[n][0].shape[1]
             if d != robot.dim:
-                raise ValueError(f"frame {n!r} is {d}-D but the robot's task space is {robot.dim}-D")
+                raise ValueError(
+                    f"frame {n!r} is {d}-D but the robot's task space is {robot.dim}-D"
+                )
         offset = self.approach_offset
         if offset == "auto":
             offset = 0.1 if robot.has_orientation else None
         elif offset is not None and not robot.has_orientation:
             raise ValueError("approach_offset needs a robot with a hand orientation; use None")
-        self.approach_offset_ = offset
+        self.approach_offset_: float | None = offset  # type: ignore[assignment]
         if (self.gripper_ is None) != (trajs[0].gripper is None):
             raise ValueError(
                 "the demonstrations and the adapter disagree on the gripper: "
@@ -484,7 +501,11 @@ class GPDemonstrationPolicy:
             tr.state if tr.gripper is None else np.column_stack([tr.state, tr.gripper])
             for tr in trajs
         ]
-        ees = [hand_points(robot, tr.state, offset)[0] for tr in trajs] if names else None
+        ees = (
+            [hand_points(robot, tr.state, self.approach_offset_)[0] for tr in trajs]
+            if names
+            else None
+        )
         frames = [{n: tr.initial_frames()[n] for n in names} for tr in trajs] if names else None
         kwargs = dict(self.encoder_kwargs or {})
         kwargs.setdefault("n_steps", self.n_steps)
@@ -627,12 +648,14 @@ class GPDemonstrationPolicy:
             for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
                 reached = np.where(fresh, False, state.reached.get(j, np.zeros(n, bool)))
                 due = ~reached & (s >= s_l - lead)
-                if np.any(due):
+                if np.any(due) and hand is not None:
                     mcol, vcol = self._cols[frame]
                     row = self._rows(np.full(n, s_l))
                     d = hand.shape[1]
                     target, _ = frame_targets(
-                        state.position[frame], state.rotation[frame], row[:, mcol][:, :d],
+                        state.position[frame],
+                        state.rotation[frame],
+                        row[:, mcol][:, :d],
                         row[:, vcol][:, :d],
                     )
                     # a frame that is loose there (demonstrations disagree) asks for no precision
@@ -749,7 +772,9 @@ class GPDemonstrationPolicy:
             for name in self.frame_names_[1:]:
                 mcol, vcol = self._cols[name]
                 targets.append(
-                    frame_targets(mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol])
+                    frame_targets(
+                        mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol]
+                    )
                 )
         dq, fused = reproduction_step(
             q,
@@ -984,7 +1009,9 @@ class GPDemonstrationPolicy:
             or not all(isinstance(n, str) for n in names)
             or len(set(names)) != len(names)
         ):
-            raise PolicyFileError(f"frame_names must be distinct names starting with {JOINT_FRAME!r}")
+            raise PolicyFileError(
+                f"frame_names must be distinct names starting with {JOINT_FRAME!r}"
+            )
         known = tuple(getattr(policy.adapter_, "frame_names", ()))
         unknown = [n for n in names[1:] if n not in known]
         if unknown:
@@ -1010,7 +1037,8 @@ class GPDemonstrationPolicy:
             raise PolicyFileError("'phase_grid' must be an increasing 1-D float array in [0, 1]")
         k = policy.robot_.n_joints + (policy.gripper_ is not None)
         d = policy.robot_.dim * (2 if offset is not None else 1)
-        mean, std = {}, {}
+        mean: dict[str, NDArray[np.float64]] = {}
+        std: dict[str, NDArray[np.float64]] = {}
         for name in names:
             want = k if name == JOINT_FRAME else d
             for kind, store in (("mean", mean), ("std", std)):

@@ -49,9 +49,7 @@ def drive(env, position, rotation, n_steps, opening=0.0):
             q, position, rotation, REST_POSTURE, max_step=MAX_JOINT_STEP
         )
         env.robot.command(q_target, opening)
-        env.scene.apply_spring()
-        env.sim.step(env.scene.enforce_stop)
-        env._n_steps += 1
+        env._simulate()
         info, _ = env._evaluate()
     return info
 

@@ -1,4 +1,4 @@
-"""GPDemonstrationPolicy on the coffee adapter: fit, the SB3 predict protocol, save/load, validation.
+"""GPDemonstrationPolicy on the coffee adapter: fit, SB3 predict protocol, save/load, validation.
 
 The demonstrations here are short scripted joint-space motions recorded in the env (no teacher
 needed), so these tests check the mechanics, not task success (see tests/test_end_to_end.py and

@@ -97,8 +97,13 @@ def test_batch_equals_one_at_a_time(arm):
     batch, cov = reproduction_step(qs, q_hat, var, x, J, [tgt], return_cov=True)
     for i in range(6):
         one, c1 = reproduction_step(
-            qs[i : i + 1], q_hat[i : i + 1], var[i : i + 1], x[i : i + 1], J[i : i + 1],
-            [(tgt[0][i : i + 1], tgt[1][i : i + 1])], return_cov=True,
+            qs[i : i + 1],
+            q_hat[i : i + 1],
+            var[i : i + 1],
+            x[i : i + 1],
+            J[i : i + 1],
+            [(tgt[0][i : i + 1], tgt[1][i : i + 1])],
+            return_cov=True,
         )
         np.testing.assert_allclose(batch[i], one[0], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(cov[i], c1[0], rtol=1e-9, atol=1e-12)
