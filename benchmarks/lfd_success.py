@@ -556,6 +556,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--quick", action="store_true", help="smoke run: n = 2, 2 episodes per draw")
     ap.add_argument("--resume", action="store_true", help="skip cells already in results.json")
     ap.add_argument("--report", action="store_true", help="only rewrite results.md from the JSON")
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        nargs="*",
+        default=[],
+        help="with --report: also take the cells of these output directories (runs split over "
+        "processes or machines; a cell present twice keeps the one with more episodes)",
+    )
     ap.add_argument("--methods", default=",".join(MAIN_METHODS), help="comma-separated")
     ap.add_argument("--levels", default=None, help="comma-separated (default: every level)")
     ap.add_argument("--perturbations", default=",".join(PERTURBATIONS), help="comma-separated")
@@ -593,6 +601,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     old_meta = json.loads(saved.read_text()).get("meta", {}) if rows and saved.exists() else {}
     if args.report:
         meta = {**meta, **old_meta}
+        for other in args.merge:
+            for key, row in load_results(other).items():
+                if row.get("episodes", -1) > rows.get(key, {}).get("episodes", -1):
+                    rows[key] = row
         write_results(out, rows, meta)
         print((out / "results.md").read_text())
         return
