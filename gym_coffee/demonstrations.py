@@ -1,20 +1,23 @@
 """Recorded demonstrations of the coffee task: record, save, load, validate.
 
-A :class:`Demonstration` is one teacher episode as per-step arrays; a :class:`DemonstrationSet` is
-several of them plus metadata (env id and kwargs, seeds, versions, teacher settings). Sets are saved
-as ONE ``.npz`` file without pickle: per-step arrays of all demonstrations concatenated along the
-first axis, ``lengths`` to split them again, and the metadata as a JSON string. The schema is
-documented in ``docs/demonstration-format.md``; :meth:`DemonstrationSet.load` checks every part of
-it and raises :class:`DemonstrationFormatError` naming what is wrong.
+A :class:`Demonstration` is one episode (of the scripted teacher, or taught by hand with
+:mod:`gym_coffee.teleop`) as per-step arrays; a :class:`DemonstrationSet` is several of them plus
+metadata (env id and kwargs, seeds, versions, who demonstrated). Sets are saved as ONE ``.npz``
+file without pickle: per-step arrays of all demonstrations concatenated along the first axis,
+``lengths`` to split them again, and the metadata as a JSON string. The schema is documented in
+``docs/demonstration-format.md``; :meth:`DemonstrationSet.load` reads only the arrays it knows,
+checks every declared size before decompressing and every number before building anything, and
+raises :class:`DemonstrationFormatError` naming what is wrong.
 
 Row ``t`` of a demonstration is the state *before* the ``t``-th action: row 0 is the state
 returned by ``reset``, the last row is the state in which the episode ended. ``actions[t]`` is the
-teacher's action in state ``t``; for the last row the teacher is asked as well but its action is
-not applied (the episode is over), so that every per-step array has ``n_steps`` rows.
+demonstrator's action in state ``t`` in the env's action mode (``action_type``); for the last row
+the teacher is asked as well but its action is not applied (the episode is over), so that every
+per-step array has ``n_steps`` rows.
 
 Example:
     >>> import gymnasium as gym, gym_coffee                      # doctest: +SKIP
-    >>> env = gym.make("gym_coffee/CoffeeTask-v0")
+    >>> env = gym.make(gym_coffee.ENV_ID)
     >>> demos = gym_coffee.collect_demonstrations(env, n=4, seed=0)
     >>> demos.save("demos.npz")
     >>> demos = gym_coffee.DemonstrationSet.load("demos.npz")
@@ -22,23 +25,24 @@ Example:
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import tempfile
-import zipfile
-import zlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Container, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, overload
+from typing import Any, BinaryIO, overload
 
 import numpy as np
 from numpy.typing import NDArray
 
+from gym_coffee import STAGES
+from gym_coffee._io import FileFormatError, NpzReader, atomic_output, refuse_existing
+
 __all__ = [
     "ACTION_DIM",
+    "ACTION_DIMS",
+    "DEFAULT_MAX_BYTES",
     "FORMAT_NAME",
     "N_JOINTS",
     "OBJECT_NAMES",
@@ -52,54 +56,91 @@ __all__ = [
 
 FORMAT_NAME = "gym_coffee.demonstrations"
 """Value of ``metadata["format"]``: tells our files from other ``.npz`` files."""
-SCHEMA_VERSION = 1
-"""Version of the file schema written by :meth:`DemonstrationSet.save`."""
-SUPPORTED_SCHEMA_VERSIONS = (1,)
+SCHEMA_VERSION = 2
+"""Version of the file schema written by :meth:`DemonstrationSet.save` (2: ``action_type``)."""
+SUPPORTED_SCHEMA_VERSIONS = (1, 2)
 N_JOINTS = 7
 """Panda arm joints (``joint_pos`` columns)."""
-ACTION_DIM = 8
-"""7 joint-position deltas + 1 gripper command (``actions`` columns)."""
-STAGE_NAMES = ("cup_grasped", "cup_placed", "button_pressed")
+ACTION_DIMS: dict[str, int] = {"joint": 8, "ee": 4, "ee_rot": 7}
+"""Action size of each of the env's action modes (``action_type``); the gripper is the last
+column in every mode."""
+ACTION_DIM = ACTION_DIMS["joint"]
+"""7 joint-position deltas + 1 gripper command (``actions`` columns of the default mode)."""
+STAGE_NAMES = STAGES
 """Columns of ``stages``, in order; the same names as the flags in the env's ``info``."""
 OBJECT_NAMES = ("cup", "machine")
 """Objects whose pose the env reports; keys of ``object_pos`` and ``object_quat``."""
+DEFAULT_MAX_BYTES = 1 << 30
+"""Default limit of :meth:`DemonstrationSet.load` (1 GiB): the file on disk, any one array
+uncompressed and all arrays read together (200 teacher demonstrations take about 30 MB)."""
+MAX_METADATA_CHARS = 1 << 20
+"""Longest metadata JSON text read (characters)."""
+MAX_OBS_DIM = 10_000
+"""Largest ``obs_dim`` accepted from a file."""
+_QUAT_NORM_TOL = 1e-3
 
-# Per-step arrays: name -> (dtype, trailing shape). ``None`` in a trailing shape means "the
-# observation size", taken from the data (and checked against ``metadata["obs_dim"]``).
-_STEP_ARRAYS: dict[str, tuple[type, tuple[int | None, ...]]] = {
-    "time": (np.float64, ()),
-    "joint_pos": (np.float64, (N_JOINTS,)),
-    "gripper": (np.float64, ()),
-    "ee_pos": (np.float64, (3,)),
-    "stages": (np.bool_, (len(STAGE_NAMES),)),
-    "actions": (np.float32, (ACTION_DIM,)),
-    "observations": (np.float32, (None,)),
+
+@dataclass(frozen=True)
+class _Spec:
+    """One per-step array: dtype, trailing shape (``"obs_dim"``/``"action_dim"`` for sizes that
+    come from the data) and the closed range of its values (the env's observation bounds)."""
+
+    dtype: type
+    trailing: tuple[int | str, ...]
+    low: float = -math.inf
+    high: float = math.inf
+
+
+_STEP_ARRAYS: dict[str, _Spec] = {
+    "time": _Spec(np.float64, (), 0.0, 1e4),
+    "joint_pos": _Spec(np.float64, (N_JOINTS,), -2 * math.pi, 2 * math.pi),
+    "gripper": _Spec(np.float64, (), 0.0, 0.1),
+    "ee_pos": _Spec(np.float64, (3,), -5.0, 5.0),
+    "stages": _Spec(np.bool_, (len(STAGE_NAMES),)),
+    "actions": _Spec(np.float32, ("action_dim",), -1.0, 1.0),
+    "observations": _Spec(np.float32, ("obs_dim",), -1e4, 1e4),
 }
-_OBJECT_ARRAYS: dict[str, tuple[type, tuple[int, ...]]] = {
-    "object_pos": (np.float64, (3,)),
-    "object_quat": (np.float64, (4,)),
+_OBJECT_ARRAYS: dict[str, _Spec] = {
+    "object_pos": _Spec(np.float64, (3,), -5.0, 5.0),
+    "object_quat": _Spec(np.float64, (4,), -1.0, 1.0),  # and unit norm
 }
+# Keys that save() adds to the metadata to describe the file; load() removes them again.
+_FILE_KEYS = ("format", "schema_version", "obs_dim", "objects", "stage_names", "action_type")
 
 
-class DemonstrationFormatError(ValueError):
-    """A demonstration file or array does not follow the schema; the message says what is wrong."""
+class DemonstrationFormatError(FileFormatError):
+    """A demonstration file or array does not follow the schema; the message says what is wrong.
+
+    A ``ValueError`` (through :class:`gym_coffee._io.FileFormatError`)."""
 
 
-def _shape_str(trailing: tuple[int | None, ...], lead: str = "n_steps") -> str:
-    dims = [lead, *("obs_dim" if d is None else str(d) for d in trailing)]
+def _shape_str(trailing: tuple[int | str, ...], lead: str = "n_steps") -> str:
+    dims = [lead, *(str(d) for d in trailing)]
     return "(" + ", ".join(dims) + ("," if len(dims) == 1 else "") + ")"
+
+
+def _resolve(trailing: tuple[int | str, ...], sizes: Mapping[str, int]) -> tuple[int | str, ...]:
+    return tuple(sizes.get(d, d) if isinstance(d, str) else d for d in trailing)
+
+
+def _first_bad(mask: NDArray[np.bool_]) -> tuple[int, ...]:
+    return tuple(int(i) for i in np.argwhere(mask)[0])
 
 
 def _as_step_array(
     name: str,
     value: Any,
-    dtype: type,
-    trailing: tuple[int | None, ...],
+    spec: _Spec,
+    trailing: tuple[int | str, ...],
     n_steps: int | None,
     lead: str | None = None,
+    lengths: NDArray[np.int64] | None = None,
 ) -> NDArray[Any]:
-    """Convert ``value`` to ``dtype``; check shape ``(n_steps, *trailing)`` and finiteness."""
+    """Convert ``value`` to the spec's dtype; check shape ``(n_steps, *trailing)`` (a ``str`` in
+    ``trailing`` matches any size), finiteness and range. With ``lengths`` (rows of concatenated
+    demonstrations) a message about a value also names its demonstration and step."""
     arr = np.asarray(value)
+    dtype = spec.dtype
     if arr.dtype == object:
         raise DemonstrationFormatError(
             f"array {name!r} has dtype object; expected {np.dtype(dtype)}"
@@ -111,10 +152,9 @@ def _as_step_array(
         raise DemonstrationFormatError(
             f"array {name!r} has dtype {arr.dtype}; expected a numeric dtype ({np.dtype(dtype)})"
         )
-    arr = np.ascontiguousarray(arr, dtype=dtype)
-    expected_ndim = 1 + len(trailing)
-    ok = arr.ndim == expected_ndim and all(
-        want is None or got == want for got, want in zip(arr.shape[1:], trailing, strict=True)
+    ok = arr.ndim == 1 + len(trailing) and all(
+        isinstance(want, str) or got == want
+        for got, want in zip(arr.shape[1:], trailing, strict=True)
     )
     if ok and n_steps is not None and arr.shape[0] != n_steps:
         ok = False
@@ -125,23 +165,62 @@ def _as_step_array(
             f"array {name!r} has shape {arr.shape}; expected {_shape_str(trailing, lead)}"
         )
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():
-        bad = np.argwhere(~np.isfinite(arr))[0]
-        what = "NaN" if np.isnan(arr[tuple(bad)]) else "inf"
+        bad = _first_bad(~np.isfinite(arr))
+        what = "NaN" if np.isnan(arr[bad]) else "inf"
         raise DemonstrationFormatError(
-            f"array {name!r} contains {what} (first at index {tuple(int(i) for i in bad)})"
+            f"array {name!r} contains {what} (first at index {bad}){_where(bad[0], lengths)}"
         )
-    return arr
+    if arr.dtype.kind in "iuf" and (spec.low > -math.inf or spec.high < math.inf):
+        # float32 rounding of the env's (float32) bounds: allow one part in 1e6
+        slack = 1e-6 * max(1.0, abs(spec.low), abs(spec.high))
+        outside = (arr < spec.low - slack) | (arr > spec.high + slack)
+        if outside.any():
+            bad = _first_bad(outside)
+            raise DemonstrationFormatError(
+                f"array {name!r} has a value outside [{spec.low:g}, {spec.high:g}]: "
+                f"{arr[bad].item()!r} at index {bad}{_where(bad[0], lengths)}"
+            )
+    return np.ascontiguousarray(arr, dtype=dtype)
+
+
+def _check_unit_quaternions(name: str, quat: NDArray[np.float64]) -> None:
+    err = np.abs(np.linalg.norm(quat, axis=-1) - 1.0)
+    if quat.size and (err > _QUAT_NORM_TOL).any():
+        row = int(np.argmax(err > _QUAT_NORM_TOL))
+        raise DemonstrationFormatError(
+            f"array {name!r} row {row} is not a unit quaternion (norm "
+            f"{np.linalg.norm(quat[row]):.6g}); expected (x, y, z, w) with norm 1"
+        )
+
+
+def _check_time(time: NDArray[np.float64]) -> None:
+    steps = np.diff(time)
+    if (steps <= 0).any():
+        i = int(np.argmax(steps <= 0))
+        raise DemonstrationFormatError(
+            f"array 'time' does not increase at step {i + 1} ({time[i]!r} -> {time[i + 1]!r}); "
+            "expected strictly increasing seconds since reset"
+        )
+
+
+def _check_action_type(action_type: Any) -> str:
+    if not isinstance(action_type, str) or action_type not in ACTION_DIMS:
+        raise DemonstrationFormatError(
+            f"action_type is {action_type!r}; expected one of {sorted(ACTION_DIMS)}"
+        )
+    return action_type
 
 
 @dataclass(eq=False)
 class Demonstration:
-    """One demonstration: the teacher's episode as per-step arrays of length ``n_steps``.
+    """One demonstration: an episode as per-step arrays of length ``n_steps``.
 
     Row ``t`` is the state before action ``t`` (row 0 = after ``reset``; last row = final state).
-    Arrays are converted to the dtypes below and checked on construction.
+    Arrays are converted to the dtypes below and checked on construction (shapes, finite, within
+    the env's observation bounds, unit quaternions, increasing time).
 
     Attributes:
-        time: ``(n_steps,)`` float64, seconds since reset (the observation's ``time``).
+        time: ``(n_steps,)`` float64, seconds since reset (the observation's ``time``), increasing.
         joint_pos: ``(n_steps, 7)`` float64, arm joint positions (rad).
         gripper: ``(n_steps,)`` float64, finger opening (m).
         ee_pos: ``(n_steps, 3)`` float64, end-effector (grasp point) position, world frame (m).
@@ -150,11 +229,13 @@ class Demonstration:
         object_quat: name -> ``(n_steps, 4)`` float64, object orientations as unit quaternions
             ``(x, y, z, w)``; same keys as ``object_pos``.
         stages: ``(n_steps, 3)`` bool, stage flags ``STAGE_NAMES`` in that state.
-        actions: ``(n_steps, 8)`` float32, the teacher's action in that state (the last row's
-            action was not applied).
+        actions: ``(n_steps, ACTION_DIMS[action_type])`` float32 in [-1, 1], the demonstrator's
+            action in that state (the last row's action was not applied).
         observations: ``(n_steps, obs_dim)`` float32, the env's observation in that state.
         seed: the ``reset(seed=...)`` that produced the layout.
         success: whether the episode ended with ``is_success``.
+        action_type: the env's action mode of ``actions``: ``"joint"`` (8-D, default), ``"ee"``
+            (4-D) or ``"ee_rot"`` (7-D); see :data:`ACTION_DIMS`.
     """
 
     time: NDArray[np.float64]
@@ -168,6 +249,7 @@ class Demonstration:
     observations: NDArray[np.float32]
     seed: int
     success: bool
+    action_type: str = "joint"
 
     def __post_init__(self) -> None:
         t = np.asarray(self.time)
@@ -176,25 +258,32 @@ class Demonstration:
                 f"array 'time' has shape {t.shape}; expected (n_steps,) with n_steps >= 1"
             )
         n = t.shape[0]
-        for name, (dtype, trailing) in _STEP_ARRAYS.items():
-            setattr(self, name, _as_step_array(name, getattr(self, name), dtype, trailing, n))
+        self.action_type = _check_action_type(self.action_type)
+        sizes = {"action_dim": ACTION_DIMS[self.action_type]}
+        for name, spec in _STEP_ARRAYS.items():
+            trailing = _resolve(spec.trailing, sizes)
+            setattr(self, name, _as_step_array(name, getattr(self, name), spec, trailing, n))
+        _check_time(self.time)
         if set(self.object_pos) != set(self.object_quat):
             raise DemonstrationFormatError(
                 f"object_pos has objects {sorted(self.object_pos)} but object_quat has "
                 f"{sorted(self.object_quat)}; they must name the same objects"
             )
-        for attr, (dtype, trailing) in _OBJECT_ARRAYS.items():
+        for attr, spec in _OBJECT_ARRAYS.items():
             objects = getattr(self, attr)
-            setattr(
-                self,
-                attr,
-                {
-                    _check_object_name(obj): _as_step_array(
-                        f"{attr}.{obj}", value, dtype, trailing, n
-                    )
-                    for obj, value in objects.items()
-                },
-            )
+            checked = {
+                _check_object_name(obj): _as_step_array(
+                    f"{attr}.{obj}", value, spec, spec.trailing, n
+                )
+                for obj, value in objects.items()
+            }
+            setattr(self, attr, checked)
+        for obj, quat in self.object_quat.items():
+            _check_unit_quaternions(f"object_quat.{obj}", quat)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
+            raise DemonstrationFormatError(f"seed must be an integer, got {self.seed!r}")
+        if self.seed < 0:
+            raise DemonstrationFormatError(f"seed must be >= 0 (a reset seed), got {self.seed}")
         self.seed = int(self.seed)
         self.success = bool(self.success)
 
@@ -208,13 +297,23 @@ class Demonstration:
         """Length of one observation."""
         return int(self.observations.shape[1])
 
+    @property
+    def gripper_command(self) -> NDArray[np.float32]:
+        """``(n_steps,)`` the commanded gripper opening in [-1, 1] (-1 closed, 1 open): the last
+        action column in every action mode."""
+        return self.actions[:, -1]
+
     def __len__(self) -> int:
         return self.n_steps
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Demonstration):
             return NotImplemented
-        if (self.seed, self.success) != (other.seed, other.success):
+        if (self.seed, self.success, self.action_type) != (
+            other.seed,
+            other.success,
+            other.action_type,
+        ):
             return False
         if set(self.object_pos) != set(other.object_pos):
             return False
@@ -228,7 +327,8 @@ class Demonstration:
     def __repr__(self) -> str:
         return (
             f"Demonstration(seed={self.seed}, success={self.success}, n_steps={self.n_steps}, "
-            f"duration={self.time[-1] - self.time[0]:.2f}s, objects={sorted(self.object_pos)})"
+            f"duration={self.time[-1] - self.time[0]:.2f}s, objects={sorted(self.object_pos)}, "
+            f"action_type={self.action_type!r})"
         )
 
 
@@ -245,11 +345,13 @@ class DemonstrationSet(Sequence[Demonstration]):
 
     ``metadata`` keys written by :func:`collect_demonstrations`: ``env_id``, ``env_kwargs``,
     ``seeds``, ``failed_seeds``, ``package_version``, ``versions``, ``teacher``,
-    ``control_dt``, ``obs_slices``; :meth:`save` adds ``format``, ``schema_version``,
-    ``obs_dim``, ``objects``, ``stage_names``.
+    ``control_dt``, ``obs_slices`` (:func:`gym_coffee.teleop.record_teleop` writes ``teleop``
+    instead of ``teacher``); :meth:`save` adds ``format``, ``schema_version``, ``obs_dim``,
+    ``objects``, ``stage_names``, ``action_type`` to the file.
 
     Args:
-        demonstrations: the demonstrations; all must have the same ``obs_dim`` and objects.
+        demonstrations: the demonstrations; all must have the same ``obs_dim``, objects and
+            ``action_type``.
         metadata: free-form, JSON-serialisable information about how they were made.
     """
 
@@ -265,16 +367,16 @@ class DemonstrationSet(Sequence[Demonstration]):
         if demos:
             first = demos[0]
             for i, d in enumerate(demos[1:], start=1):
-                if d.obs_dim != first.obs_dim:
-                    raise DemonstrationFormatError(
-                        f"demonstration {i} has obs_dim {d.obs_dim}, demonstration 0 has "
-                        f"{first.obs_dim}; all must match"
-                    )
-                if set(d.object_pos) != set(first.object_pos):
-                    raise DemonstrationFormatError(
-                        f"demonstration {i} has objects {sorted(d.object_pos)}, demonstration 0 "
-                        f"has {sorted(first.object_pos)}; all must match"
-                    )
+                for what, mine, theirs in (
+                    ("obs_dim", d.obs_dim, first.obs_dim),
+                    ("objects", sorted(d.object_pos), sorted(first.object_pos)),
+                    ("action_type", d.action_type, first.action_type),
+                ):
+                    if mine != theirs:
+                        raise DemonstrationFormatError(
+                            f"demonstration {i} has {what} {mine!r}, demonstration 0 has "
+                            f"{theirs!r}; all must match"
+                        )
         self._demos = demos
         self.metadata: dict[str, Any] = dict(metadata or {})
 
@@ -306,7 +408,7 @@ class DemonstrationSet(Sequence[Demonstration]):
         shown = str(seeds) if len(seeds) <= 8 else f"[{seeds[0]}, {seeds[1]}, ..., {seeds[-1]}]"
         return (
             f"DemonstrationSet({len(self)} demonstrations, seeds={shown}, "
-            f"env_id={self.metadata.get('env_id')!r})"
+            f"env_id={self.metadata.get('env_id')!r}, action_type={self.action_type!r})"
         )
 
     @property
@@ -318,6 +420,11 @@ class DemonstrationSet(Sequence[Demonstration]):
     def objects(self) -> list[str]:
         """Names of the recorded objects (sorted)."""
         return sorted(self._demos[0].object_pos) if self._demos else list(OBJECT_NAMES)
+
+    @property
+    def action_type(self) -> str:
+        """The env action mode of the demonstrations' ``actions`` (``"joint"`` if empty)."""
+        return self._demos[0].action_type if self._demos else "joint"
 
     # -- saving ---------------------------------------------------------------------------------
     def to_arrays(self) -> dict[str, NDArray[Any]]:
@@ -335,20 +442,34 @@ class DemonstrationSet(Sequence[Demonstration]):
         out["lengths"] = np.array([d.n_steps for d in demos], dtype=np.int64)
         out["seeds"] = np.array(self.seeds, dtype=np.int64)
         out["success"] = np.array([d.success for d in demos], dtype=np.bool_)
+        out["metadata"] = np.array(json.dumps(self.file_metadata(), sort_keys=True))
+        return out
+
+    def file_metadata(self) -> dict[str, Any]:
+        """``metadata`` plus the keys that describe the file (``format``, ``schema_version``,
+        ``obs_dim``, ``objects``, ``stage_names``, ``action_type``), as plain JSON values.
+
+        Raises:
+            DemonstrationFormatError: the set is empty.
+            TypeError: ``metadata`` is not JSON-serialisable.
+        """
+        if not self._demos:
+            raise DemonstrationFormatError("cannot save an empty DemonstrationSet")
         meta = dict(self.metadata)
         meta.update(
             format=FORMAT_NAME,
             schema_version=SCHEMA_VERSION,
-            obs_dim=demos[0].obs_dim,
+            obs_dim=self._demos[0].obs_dim,
             objects=self.objects,
             stage_names=list(STAGE_NAMES),
+            action_type=self.action_type,
         )
         try:
-            text = json.dumps(meta, sort_keys=True, allow_nan=False, default=_json_default)
+            text = json.dumps(meta, allow_nan=False, default=_json_default)
         except (TypeError, ValueError) as exc:
             raise TypeError(f"metadata is not JSON-serialisable: {exc}") from exc
-        out["metadata"] = np.array(text)
-        return out
+        result: dict[str, Any] = json.loads(text)
+        return result
 
     def save(self, path: str | os.PathLike[str], overwrite: bool = False) -> Path:
         """Write the set to ONE ``.npz`` file (no pickle), atomically.
@@ -370,202 +491,242 @@ class DemonstrationSet(Sequence[Demonstration]):
             TypeError: ``metadata`` is not JSON-serialisable.
         """
         path = Path(path)
-        if path.exists() and not overwrite:
-            raise FileExistsError(
-                f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
-            )
+        refuse_existing(path, overwrite)
         arrays = self.to_arrays()  # fails before anything touches the disk
-        folder = path.parent if str(path.parent) else Path(".")
-        if not folder.is_dir():
-            raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.chmod(tmp_name, 0o666 & ~_umask())
-            if overwrite:
-                os.replace(tmp_name, path)
-            else:
-                # os.link fails if ``path`` appeared meanwhile: no silent clobbering in a race.
-                try:
-                    os.link(tmp_name, path)
-                except FileExistsError:
-                    raise FileExistsError(
-                        f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
-                    ) from None
-                except OSError:  # file systems without hard links
-                    if path.exists():
-                        raise FileExistsError(f"{path} exists; pass overwrite=True") from None
-                    os.replace(tmp_name, path)
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp_name)
+        with atomic_output(path, overwrite=overwrite) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
         return path
 
     # -- loading --------------------------------------------------------------------------------
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> DemonstrationSet:
-        """Read and validate a file written by :meth:`save`.
+    def load(
+        cls,
+        source: str | os.PathLike[str] | BinaryIO,
+        *,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+    ) -> DemonstrationSet:
+        """Read and validate a file written by :meth:`save` (any supported schema version).
+
+        Only the arrays of the schema are read; arrays it does not know are ignored unread. The
+        file's size, each array's declared size (zip directory and ``.npy`` header) and each
+        array's shape (against ``lengths`` and the metadata) are checked before its data are
+        decompressed, and every value is checked (finite, in range) before a
+        :class:`Demonstration` is built. Nothing is unpickled and nothing is written.
+
+        Args:
+            source: a path or a binary file object (``io.BytesIO``).
+            max_bytes: the largest file, array and total of arrays read (bytes).
 
         Raises:
             FileNotFoundError: no such file.
-            DemonstrationFormatError: the file is not a readable ``.npz`` (truncated, corrupt), is
-                not a demonstration file, has an unsupported schema version, misses an array, has
-                an array of the wrong shape or dtype, contains NaN/inf, or its ``lengths`` do not
-                add up. The message names the file and what is wrong.
+            DemonstrationFormatError: the file is not an ``.npz`` file (a text file, truncated,
+                corrupt), is larger than ``max_bytes``, is not a demonstration file, has an
+                unsupported schema version, misses an array, has an array of the wrong shape or
+                dtype, contains NaN/inf or values out of range, or its ``lengths`` do not add up.
+                The message names the file and what is wrong.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"no demonstration file at {path}")
+        if isinstance(source, (str, os.PathLike)):
+            what = str(source)
+            if not Path(source).is_file():
+                raise FileNotFoundError(f"no demonstration file at {source}")
+        else:
+            what = "demonstration file"
         try:
-            with np.load(path, allow_pickle=False) as npz:
-                keys = set(npz.files)
-                arrays = {}
-                for key in keys:
-                    try:
-                        arrays[key] = npz[key]
-                    except ValueError as exc:
-                        if "allow_pickle" in str(exc):
-                            raise DemonstrationFormatError(
-                                f"{path}: array {key!r} holds Python objects (pickle); "
-                                "demonstration files must not"
-                            ) from exc
-                        raise DemonstrationFormatError(
-                            f"{path}: array {key!r} cannot be read (truncated or corrupt "
-                            f"file?): {exc}"
-                        ) from exc
-                    except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
-                        raise DemonstrationFormatError(
-                            f"{path}: array {key!r} cannot be read (truncated or corrupt "
-                            f"file?): {exc}"
-                        ) from exc
-        except DemonstrationFormatError:
-            raise
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
-            raise DemonstrationFormatError(
-                f"{path} is not a readable .npz file (truncated or corrupt?): {exc}"
-            ) from exc
-        try:
+            with NpzReader(source, max_bytes=max_bytes, what=what) as npz:
+                arrays = _read_members(npz)
             return cls.from_arrays(arrays)
         except DemonstrationFormatError as exc:
-            raise DemonstrationFormatError(f"{path}: {exc}") from None
+            if str(exc).startswith(what):
+                raise
+            raise DemonstrationFormatError(f"{what}: {exc}") from None
+        except FileFormatError as exc:
+            raise DemonstrationFormatError(str(exc)) from None
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, NDArray[Any]]) -> DemonstrationSet:
         """Inverse of :meth:`to_arrays`, with full validation (see :meth:`load`)."""
-        meta = _parse_metadata(arrays)
-        objects = meta.get("objects")
-        if (
-            not isinstance(objects, list)
-            or not objects
-            or not all(isinstance(o, str) and o.isidentifier() for o in objects)
-        ):
-            raise DemonstrationFormatError(
-                f"metadata 'objects' must be a non-empty list of names, got {objects!r}"
-            )
-        if meta.get("stage_names", list(STAGE_NAMES)) != list(STAGE_NAMES):
-            raise DemonstrationFormatError(
-                f"metadata 'stage_names' is {meta.get('stage_names')!r}; expected "
-                f"{list(STAGE_NAMES)}"
-            )
-        required = ["lengths", "seeds", "success", *_STEP_ARRAYS]
-        required += [f"{attr}.{obj}" for attr in _OBJECT_ARRAYS for obj in objects]
-        missing = [k for k in required if k not in arrays]
-        if missing:
-            raise DemonstrationFormatError(
-                "missing array"
-                + ("s " if len(missing) > 1 else " ")
-                + ", ".join(map(repr, missing))
-            )
-
-        lengths = np.asarray(arrays["lengths"])
-        if lengths.ndim != 1 or lengths.size == 0 or lengths.dtype.kind not in "iu":
-            raise DemonstrationFormatError(
-                f"array 'lengths' has shape {lengths.shape} and dtype {lengths.dtype}; expected "
-                "(n_demos,) integers with n_demos >= 1"
-            )
-        if (lengths < 1).any():
-            raise DemonstrationFormatError(
-                f"array 'lengths' has entries < 1: {lengths.tolist()}; every demonstration "
-                "has at least one step"
-            )
-        n_demos, total = int(lengths.size), int(lengths.sum())
-        seeds = np.asarray(arrays["seeds"])
-        success = np.asarray(arrays["success"])
-        if seeds.shape != (n_demos,) or seeds.dtype.kind not in "iu":
-            raise DemonstrationFormatError(
-                f"array 'seeds' has shape {seeds.shape} and dtype {seeds.dtype}; expected "
-                f"({n_demos},) integers (one per entry of 'lengths')"
-            )
-        if success.shape != (n_demos,) or success.dtype != np.bool_:
-            raise DemonstrationFormatError(
-                f"array 'success' has shape {success.shape} and dtype {success.dtype}; expected "
-                f"({n_demos},) bool (one per entry of 'lengths')"
-            )
-        if "seeds" in meta and meta["seeds"] != seeds.tolist():
-            raise DemonstrationFormatError(
-                f"metadata 'seeds' {meta['seeds']} differ from array 'seeds' {seeds.tolist()}"
-            )
-
-        # Check every per-step array's total length against sum(lengths) before splitting.
-        step_names = list(_STEP_ARRAYS) + [f"{a}.{o}" for a in _OBJECT_ARRAYS for o in objects]
-        obs_dim = meta.get("obs_dim")
+        meta = _parse_metadata(np.asarray(arrays["metadata"]) if "metadata" in arrays else None)
+        _check_missing(meta, arrays)
+        lengths, seeds, success = _check_index_arrays(
+            meta, arrays["lengths"], arrays["seeds"], arrays["success"]
+        )
+        total = int(lengths.sum())
+        shapes = _expected_shapes(meta, total)
         checked: dict[str, NDArray[Any]] = {}
-        for name in step_names:
-            attr = name.split(".")[0]
-            dtype, trailing = _STEP_ARRAYS.get(attr) or _OBJECT_ARRAYS[attr]
-            if attr == "observations" and isinstance(obs_dim, int):
-                trailing = (obs_dim,)
+        for name, trailing in shapes.items():
+            spec = _spec_of(name)
             arr = np.asarray(arrays[name])
-            if arr.ndim >= 1 and arr.shape[0] != total and arr.ndim == 1 + len(trailing):
-                raise DemonstrationFormatError(
-                    f"array {name!r} has {arr.shape[0]} rows but 'lengths' add up to {total} "
-                    f"({lengths.tolist()}); expected shape {_shape_str(trailing, str(total))}"
-                )
-            try:
-                checked[name] = _as_step_array(name, arr, dtype, trailing, total, lead=str(total))
-            except DemonstrationFormatError as exc:
-                msg = str(exc)
-                if "contains" in msg:
-                    msg += _locate_row(arr, lengths)
-                raise DemonstrationFormatError(msg) from None
+            _check_shape(name, arr.shape, trailing, lengths)
+            checked[name] = _as_step_array(
+                name, arr, spec, trailing, total, lead=str(total), lengths=lengths
+            )
 
         bounds = np.concatenate([[0], np.cumsum(lengths)])
-        demos = []
-        for i in range(n_demos):
+        objects = meta["objects"]
+        kwargs = []
+        for i in range(len(lengths)):
             sl = slice(int(bounds[i]), int(bounds[i + 1]))
             kw: dict[str, Any] = {name: checked[name][sl] for name in _STEP_ARRAYS}
             for attr in _OBJECT_ARRAYS:
                 kw[attr] = {obj: checked[f"{attr}.{obj}"][sl] for obj in objects}
-            demos.append(Demonstration(**kw, seed=int(seeds[i]), success=bool(success[i])))
-        metadata = {
-            k: v
-            for k, v in meta.items()
-            if k not in ("format", "schema_version", "obs_dim", "objects", "stage_names")
-        }
+            kwargs.append(kw)
+        # The checks that need one demonstration at a time (increasing time, unit quaternions)
+        # run in the constructor; a failure names the demonstration.
+        demos = []
+        for i, kw in enumerate(kwargs):
+            try:
+                demo = Demonstration(
+                    **kw,
+                    seed=int(seeds[i]),
+                    success=bool(success[i]),
+                    action_type=meta["action_type"],
+                )
+            except DemonstrationFormatError as exc:
+                raise DemonstrationFormatError(f"demonstration {i}: {exc}") from None
+            demos.append(demo)
+        metadata = {k: v for k, v in meta.items() if k not in _FILE_KEYS}
         return cls(demos, metadata)
 
 
-def _locate_row(arr: NDArray[Any], lengths: NDArray[Any]) -> str:
-    """' (demonstration i, step j)' for the first non-finite row of a concatenated array."""
-    arr = np.asarray(arr, dtype=np.float64)
-    rows = np.argwhere(~np.isfinite(arr.reshape(arr.shape[0], -1)).all(axis=1)).ravel()
-    if rows.size == 0:
+def _spec_of(name: str) -> _Spec:
+    attr = name.split(".")[0]
+    return _STEP_ARRAYS.get(attr) or _OBJECT_ARRAYS[attr]
+
+
+def _required_members(meta: Mapping[str, Any]) -> list[str]:
+    objects = meta["objects"]
+    return [
+        "lengths",
+        "seeds",
+        "success",
+        *_STEP_ARRAYS,
+        *(f"{attr}.{obj}" for attr in _OBJECT_ARRAYS for obj in objects),
+    ]
+
+
+def _check_missing(meta: Mapping[str, Any], present: Container[str]) -> None:
+    missing = [k for k in _required_members(meta) if k not in present]
+    if missing:
+        raise DemonstrationFormatError(
+            "missing array" + ("s " if len(missing) > 1 else " ") + ", ".join(map(repr, missing))
+        )
+
+
+def _expected_shapes(meta: Mapping[str, Any], total: int) -> dict[str, tuple[int | str, ...]]:
+    """Trailing shape of every per-step array (``total`` rows each)."""
+    sizes: dict[str, int] = {"action_dim": ACTION_DIMS[meta["action_type"]]}
+    if "obs_dim" in meta:
+        sizes["obs_dim"] = meta["obs_dim"]
+    return {name: _resolve(_spec_of(name).trailing, sizes) for name in _required_members(meta)[3:]}
+
+
+def _check_index_arrays(
+    meta: Mapping[str, Any], lengths: Any, seeds: Any, success: Any
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
+    lengths = np.asarray(lengths)
+    if lengths.ndim != 1 or lengths.size == 0 or lengths.dtype.kind not in "iu":
+        raise DemonstrationFormatError(
+            f"array 'lengths' has shape {lengths.shape} and dtype {lengths.dtype}; expected "
+            "(n_demos,) integers with n_demos >= 1"
+        )
+    if (lengths < 1).any():
+        raise DemonstrationFormatError(
+            f"array 'lengths' has entries < 1: {lengths.tolist()[:20]}; every demonstration "
+            "has at least one step"
+        )
+    if (lengths > 1 << 40).any():
+        raise DemonstrationFormatError(f"array 'lengths' has absurd entries: {lengths.max()}")
+    lengths = lengths.astype(np.int64)
+    n_demos = int(lengths.size)
+    seeds = np.asarray(seeds)
+    success = np.asarray(success)
+    if seeds.shape != (n_demos,) or seeds.dtype.kind not in "iu":
+        raise DemonstrationFormatError(
+            f"array 'seeds' has shape {seeds.shape} and dtype {seeds.dtype}; expected "
+            f"({n_demos},) integers (one per entry of 'lengths')"
+        )
+    if (seeds < 0).any() or (seeds.dtype.kind == "u" and (seeds > np.iinfo(np.int64).max).any()):
+        raise DemonstrationFormatError(
+            f"array 'seeds' has entries outside [0, 2**63): {seeds.tolist()[:20]}"
+        )
+    if success.shape != (n_demos,) or success.dtype != np.bool_:
+        raise DemonstrationFormatError(
+            f"array 'success' has shape {success.shape} and dtype {success.dtype}; expected "
+            f"({n_demos},) bool (one per entry of 'lengths')"
+        )
+    if "seeds" in meta and meta["seeds"] != seeds.tolist():
+        raise DemonstrationFormatError(
+            f"metadata 'seeds' {meta['seeds']} differ from array 'seeds' {seeds.tolist()}"
+        )
+    return lengths, seeds.astype(np.int64), success
+
+
+def _check_shape(
+    name: str, shape: tuple[int, ...], trailing: tuple[int | str, ...], lengths: NDArray[np.int64]
+) -> None:
+    """Refuse a per-step array whose shape is not ``(sum(lengths), *trailing)``."""
+    total = int(lengths.sum())
+    want = (total, *trailing)
+    if len(shape) == len(want) and all(
+        isinstance(w, str) or got == w for got, w in zip(shape, want, strict=True)
+    ):
+        return
+    expected = _shape_str(trailing, str(total))
+    if len(shape) == len(want) and shape[0] != total:
+        shown = lengths.tolist() if lengths.size <= 10 else f"{lengths.size} demonstrations"
+        raise DemonstrationFormatError(
+            f"array {name!r} has {shape[0]} rows but 'lengths' add up to {total} ({shown}); "
+            f"expected shape {expected}"
+        )
+    raise DemonstrationFormatError(f"array {name!r} has shape {shape}; expected {expected}")
+
+
+def _read_members(npz: NpzReader) -> dict[str, NDArray[Any]]:
+    """Read the schema's arrays from ``npz``, checking each header's shape before its data."""
+    shape, dtype = npz.header("metadata")
+    if dtype.kind != "U" or shape != () or dtype.itemsize // 4 > MAX_METADATA_CHARS:
+        raise DemonstrationFormatError(
+            f"array 'metadata' has dtype {dtype} and shape {shape}; expected one unicode string "
+            f"holding JSON of at most {MAX_METADATA_CHARS} characters"
+        )
+    arrays = {"metadata": npz.read("metadata")}
+    meta = _parse_metadata(arrays["metadata"])
+    _check_missing(meta, npz.members)
+    for name in ("lengths", "seeds", "success"):
+        shape, dtype = npz.header(name)
+        if len(shape) != 1:
+            raise DemonstrationFormatError(f"array {name!r} has shape {shape}; expected (n_demos,)")
+        arrays[name] = npz.read(name)
+    lengths, _seeds, _success = _check_index_arrays(
+        meta, arrays["lengths"], arrays["seeds"], arrays["success"]
+    )
+    total = int(lengths.sum())
+    for name, trailing in _expected_shapes(meta, total).items():
+        shape, dtype = npz.header(name)
+        _check_shape(name, shape, trailing, lengths)
+        if dtype.kind not in "biuf":
+            raise DemonstrationFormatError(
+                f"array {name!r} has dtype {dtype}; expected {np.dtype(_spec_of(name).dtype)}"
+            )
+        arrays[name] = npz.read(name)
+    return arrays
+
+
+def _where(row: int, lengths: NDArray[np.int64] | None) -> str:
+    """'; row r is demonstration i, step j' for a row of concatenated demonstrations."""
+    if lengths is None:
         return ""
-    row = int(rows[0])
     demo = int(np.searchsorted(np.cumsum(lengths), row, side="right"))
     step = row - int(np.sum(lengths[:demo]))
     return f"; row {row} is demonstration {demo}, step {step}"
 
 
-def _parse_metadata(arrays: Mapping[str, NDArray[Any]]) -> dict[str, Any]:
-    if "metadata" not in arrays:
+def _parse_metadata(raw: NDArray[Any] | None) -> dict[str, Any]:
+    """Parse and check the metadata JSON; fills ``action_type`` for schema version 1."""
+    if raw is None:
         raise DemonstrationFormatError(
             "missing array 'metadata' (the JSON header); not a gym_coffee demonstration file"
         )
-    raw = np.asarray(arrays["metadata"])
     if raw.dtype.kind != "U" or raw.size != 1:
         raise DemonstrationFormatError(
             f"array 'metadata' has dtype {raw.dtype} and shape {raw.shape}; expected one "
@@ -573,8 +734,8 @@ def _parse_metadata(arrays: Mapping[str, NDArray[Any]]) -> dict[str, Any]:
         )
     try:
         meta = json.loads(str(raw.reshape(())))
-    except json.JSONDecodeError as exc:
-        raise DemonstrationFormatError(f"array 'metadata' is not valid JSON: {exc}") from exc
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise DemonstrationFormatError(f"array 'metadata' is not valid JSON: {exc}") from None
     if not isinstance(meta, dict):
         raise DemonstrationFormatError("array 'metadata' must hold a JSON object")
     if meta.get("format") != FORMAT_NAME:
@@ -583,17 +744,39 @@ def _parse_metadata(arrays: Mapping[str, NDArray[Any]]) -> dict[str, Any]:
             "(not a gym_coffee demonstration file)"
         )
     version = meta.get("schema_version")
-    if version not in SUPPORTED_SCHEMA_VERSIONS:
+    if isinstance(version, bool) or version not in SUPPORTED_SCHEMA_VERSIONS:
         newer = isinstance(version, int) and version > max(SUPPORTED_SCHEMA_VERSIONS)
         hint = " (written by a newer gym_coffee? upgrade gym-coffee)" if newer else ""
         raise DemonstrationFormatError(
             f"schema version {version!r} is not supported; this gym_coffee reads "
             f"{list(SUPPORTED_SCHEMA_VERSIONS)}{hint}"
         )
-    if "obs_dim" in meta and not (isinstance(meta["obs_dim"], int) and meta["obs_dim"] > 0):
+    obs_dim = meta.get("obs_dim")
+    if "obs_dim" in meta and not (
+        isinstance(obs_dim, int) and not isinstance(obs_dim, bool) and 0 < obs_dim <= MAX_OBS_DIM
+    ):
         raise DemonstrationFormatError(
-            f"metadata 'obs_dim' is {meta['obs_dim']!r}; expected a positive integer"
+            f"metadata 'obs_dim' is {obs_dim!r}; expected an integer in [1, {MAX_OBS_DIM}]"
         )
+    objects = meta.get("objects")
+    if (
+        not isinstance(objects, list)
+        or not objects
+        or len(objects) > 100
+        or not all(isinstance(o, str) and o.isidentifier() for o in objects)
+        or len(set(objects)) != len(objects)
+    ):
+        raise DemonstrationFormatError(
+            f"metadata 'objects' must be a non-empty list of distinct names, got {objects!r:.200}"
+        )
+    if meta.get("stage_names", list(STAGE_NAMES)) != list(STAGE_NAMES):
+        raise DemonstrationFormatError(
+            f"metadata 'stage_names' is {meta.get('stage_names')!r:.200}; expected "
+            f"{list(STAGE_NAMES)}"
+        )
+    if version == 1:  # schema 1 had joint actions only
+        meta["action_type"] = "joint"
+    meta["action_type"] = _check_action_type(meta.get("action_type"))
     return meta
 
 
@@ -607,12 +790,6 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, (set, frozenset, tuple)):
         return list(obj)
     raise TypeError(f"{type(obj).__name__} {obj!r} cannot be stored as JSON")
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 # ------------------------------------------------------------------------------------------------
@@ -703,6 +880,12 @@ def collect_demonstrations(
     seed = int(seed)
     max_attempts = 2 * n + 10 if max_attempts is None else int(max_attempts)
     teacher_kwargs = dict(teacher_kwargs or {})
+    action_type = getattr(env.unwrapped, "action_type", "joint")
+    if action_type != "joint":
+        raise ValueError(
+            f"env has action_type={action_type!r}; the scripted teacher acts in joint space: "
+            "make the env with action_type='joint' (the default)"
+        )
     env_id, env_kwargs, max_steps = _env_identity(env)
     if max_steps is None:
         max_steps = 400  # a raw env has no TimeLimit; do not loop forever on a stuck teacher
@@ -740,7 +923,7 @@ def collect_demonstrations(
         if bar is not None:
             bar.close()
 
-    metadata = {
+    metadata: dict[str, Any] = {
         "env_id": env_id,
         "env_kwargs": env_kwargs,
         "seeds": [d.seed for d in demos],
@@ -809,7 +992,10 @@ def _demonstration_from_steps(
     infos: list[Mapping[str, Any]],
     actions: list[NDArray[Any]],
     obs_part: Any,
+    action_type: str = "joint",
 ) -> Demonstration:
+    """A :class:`Demonstration` from an episode's observations, infos (``reset``'s first) and
+    actions (one per observation; the last one not applied)."""
     obs = np.asarray(observations, dtype=np.float32)
     f64 = np.float64
     stages = np.array([[bool(i.get(k, False)) for k in STAGE_NAMES] for i in infos], dtype=bool)
@@ -831,4 +1017,5 @@ def _demonstration_from_steps(
         observations=obs,
         seed=seed,
         success=bool(infos[-1].get("is_success", False)),
+        action_type=action_type,
     )

@@ -3,7 +3,8 @@
 The format follows the file suffix: ``.mp4`` (H.264 through imageio's ffmpeg plugin; needs the
 ``imageio-ffmpeg`` package, a dependency of gym-coffee that ships its own ffmpeg binary) or
 ``.gif`` (Pillow, always available). Frames are written atomically: a temporary file in the
-same folder replaces ``path`` only when the video is complete.
+same folder becomes ``path`` only when the video is complete, and an existing file is replaced
+only with ``overwrite=True``.
 
 Example:
     >>> frames = [env.render() for _ in range(100)]              # doctest: +SKIP
@@ -12,15 +13,16 @@ Example:
 
 from __future__ import annotations
 
-import contextlib
+import math
 import os
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from gym_coffee._io import atomic_output, refuse_existing
 
 __all__ = ["VIDEO_SUFFIXES", "check_video_path", "write_video"]
 
@@ -42,13 +44,17 @@ def check_video_path(path: str | os.PathLike[str]) -> Path:
 
 
 def _as_frames(frames: Iterable[NDArray[Any]]) -> list[NDArray[np.uint8]]:
-    out = []
+    out: list[NDArray[np.uint8]] = []
     for i, frame in enumerate(frames):
         arr = np.asarray(frame)
-        if arr.ndim != 3 or arr.shape[2] not in (3, 4):
+        if arr.ndim != 3 or arr.shape[2] not in (3, 4) or min(arr.shape[:2]) < 1:
             raise ValueError(f"frame {i} has shape {arr.shape}; expected (height, width, 3)")
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"frame {i} has dtype {arr.dtype}; expected uint8 RGB")
+        if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            raise ValueError(f"frame {i} contains NaN or inf")
         if arr.dtype != np.uint8:
-            if arr.dtype.kind == "f" and arr.size and float(np.nanmax(arr)) <= 1.0:
+            if arr.dtype.kind == "f" and arr.size and float(arr.max()) <= 1.0:
                 arr = arr * 255.0
             arr = np.clip(arr, 0, 255).astype(np.uint8)
         arr = np.ascontiguousarray(arr[:, :, :3])
@@ -71,30 +77,31 @@ def write_video(
     frames: Iterable[NDArray[Any]],
     fps: float = 20.0,
     *,
-    overwrite: bool = True,
+    overwrite: bool = False,
 ) -> Path:
-    """Write ``frames`` (each ``(height, width, 3)`` uint8 RGB) to ``path``.
+    """Write ``frames`` (each ``(height, width, 3)`` uint8 RGB) to ``path``, atomically.
 
     Args:
-        path: output file; ``.mp4`` or ``.gif``.
+        path: output file; ``.mp4`` or ``.gif``. Its folder is created if needed.
         frames: the frames, all the same size. Float frames in [0, 1] or [0, 255] are converted.
-        fps: frames per second of the video.
-        overwrite: replace an existing file (default). Without it an existing file is an error.
+        fps: frames per second of the video (positive, finite).
+        overwrite: replace an existing file. Without it an existing file is an error, raised
+            before any frame is encoded.
 
     Returns:
         The path written.
 
     Raises:
-        ValueError: unsupported suffix, no frames, frames of different sizes.
+        ValueError: unsupported suffix, bad ``fps``, no frames, frames of different sizes,
+            non-finite float frames.
         FileExistsError: ``path`` exists and ``overwrite`` is false.
         ImportError: MP4 requested but ``imageio-ffmpeg`` is not installed (the message says to
             install it or to write a ``.gif``).
     """
     path = check_video_path(path)
-    if fps <= 0:
-        raise ValueError(f"fps must be positive, got {fps}")
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps < math.inf:
+        raise ValueError(f"fps must be a positive finite number, got {fps!r}")
+    refuse_existing(path, overwrite)
     images = _as_frames(frames)
     suffix = path.suffix.lower()
     if suffix == ".mp4":
@@ -108,11 +115,8 @@ def write_video(
     import imageio.v2 as iio2
     import imageio.v3 as iio3
 
-    folder = path.parent if str(path.parent) else Path(".")
-    folder.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix, dir=folder)
-    os.close(fd)
-    try:
+    (path.parent if str(path.parent) else Path(".")).mkdir(parents=True, exist_ok=True)
+    with atomic_output(path, overwrite=overwrite, suffix=suffix) as tmp:
         if suffix == ".mp4":
             writer = iio2.get_writer(
                 tmp,
@@ -139,11 +143,4 @@ def write_video(
                 duration=1000.0 / float(fps),
                 loop=0,
             )
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # mkstemp creates 0600; give the usual permissions
-        os.replace(tmp, path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
     return path

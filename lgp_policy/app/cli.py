@@ -14,32 +14,37 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import gym_coffee
+from lgp_policy.app._common import (
+    ArgumentParser,
+    UsageError,
+    add_force_option,
+    check_output,
+    check_seed_room,
+    check_video_output,
+    demos_int,
+    run_command,
+    seed_int,
+)
 from lgp_policy.app.commands import add_subcommands
 
 if TYPE_CHECKING:
     from gym_coffee.demonstrations import Demonstration
 
-DEFAULT_ENV_ID = "gym_coffee/CoffeeTask-v0"
+
+def coffee_env_ids() -> list[str]:
+    """The registered ``gym_coffee`` environment ids (every level)."""
+    from gymnasium.envs.registration import registry
+
+    return sorted(i for i in registry if i.startswith("gym_coffee/"))
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
+def check_env_id(env_id: str) -> str:
+    """Raise :class:`UsageError` naming ``--env-id`` unless it is a registered coffee env."""
+    known = coffee_env_ids()
+    if env_id not in known:
+        raise UsageError(f"argument --env-id: expected one of {known}, got {env_id!r}")
+    return env_id
 
 
 def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -55,65 +60,59 @@ def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentP
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--n", type=_positive_int, default=4, help="number of demonstrations")
+    p.add_argument("--n", type=demos_int, default=4, help="number of demonstrations")
     p.add_argument("--out", type=Path, required=True, help="output .npz file")
     p.add_argument(
         "--seed",
-        type=_non_negative_int,
+        type=seed_int,
         default=0,
         help="first layout seed (keep it below 10000: evaluation uses 10000+)",
     )
-    p.add_argument("--force", action="store_true", help="overwrite an existing --out file")
+    add_force_option(p, "--out and --video files")
     p.add_argument(
         "--video",
         type=Path,
         default=None,
         help="also write a video (.mp4 or .gif) of the first demonstration, replayed",
     )
-    p.add_argument("--env-id", default=DEFAULT_ENV_ID, help="Gymnasium env id")
+    p.add_argument("--env-id", default=gym_coffee.ENV_ID, help="Gymnasium env id")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=cmd_record)
     return p
 
 
+def check_record(args: argparse.Namespace) -> None:
+    """Every ``record`` argument, before any work."""
+    check_env_id(args.env_id)
+    check_seed_room(args.seed, 100 * args.n, "--n", args.n)
+    check_output("--out", args.out, force=args.force, suffixes=(".npz",))
+    if args.video is not None:
+        check_video_output("--video", args.video, force=args.force)
+        if args.video.absolute() == args.out.absolute():
+            raise UsageError("argument --video: the same file as --out")
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     import gymnasium as gym
 
-    import gym_coffee  # noqa: F401  (registers the env ids)
     from gym_coffee.demonstrations import collect_demonstrations
 
-    out: Path = args.out
-    if out.exists() and not args.force:
-        print(f"gym-coffee record: error: {out} exists; pass --force to overwrite", file=sys.stderr)
-        return 2
-    if out.parent and not out.parent.is_dir():
-        print(f"gym-coffee record: error: folder {out.parent} does not exist", file=sys.stderr)
-        return 2
-    if args.video is not None:
-        from gym_coffee.video import check_video_path
-
-        try:
-            check_video_path(args.video)
-        except ValueError as exc:
-            print(f"gym-coffee record: error: {exc}", file=sys.stderr)
-            return 2
-
+    check_record(args)
     env = gym.make(args.env_id)
     try:
         demos = collect_demonstrations(env, n=args.n, seed=args.seed, progress=not args.no_progress)
-    except RuntimeError as exc:
-        print(f"gym-coffee record: error: {exc}", file=sys.stderr)
-        return 1
     finally:
         env.close()
-    demos.save(out, overwrite=args.force)
-    n_steps = [d.n_steps for d in demos]
-    print(f"saved {len(demos)} demonstrations (seeds {demos.seeds}, {sum(n_steps)} steps) to {out}")
+    demos.save(args.out, overwrite=args.force)
+    n_steps = sum(d.n_steps for d in demos)
+    print(f"saved {len(demos)} demonstrations (seeds {demos.seeds}, {n_steps} steps) to {args.out}")
     failed = demos.metadata.get("failed_seeds") or []
     if failed:
         print(f"the teacher failed on seeds {failed}; they were skipped")
     if args.video is not None:
-        path = record_video(args.env_id, demos[0], args.video, progress=not args.no_progress)
+        path = record_video(
+            args.env_id, demos[0], args.video, progress=not args.no_progress, overwrite=args.force
+        )
         print(f"wrote {path}")
     return 0
 
@@ -134,6 +133,7 @@ def record_video(
     max_frames: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> Path:
     """Replay ``demo``'s actions in a fresh ``rgb_array`` env and write every ``stride``-th frame.
 
@@ -154,7 +154,7 @@ def record_video(
         bar = tqdm(total=demo.n_steps - 1, desc=f"rendering {path.name}", unit="step")
     try:
         env.reset(seed=demo.seed)
-        frames = [env.render()]
+        frames: list[Any] = [env.render()]
         for t, action in enumerate(demo.actions[:-1], start=1):  # the last one was not applied
             if max_frames is not None and len(frames) >= max_frames:
                 break
@@ -170,25 +170,46 @@ def record_video(
         env.close()
         if bar is not None:
             bar.close()
-    return write_video(path, frames, fps=fps)
+    return write_video(path, frames, fps=fps, overwrite=overwrite)
+
+
+def _add_debug_option(p: argparse.ArgumentParser, default: Any) -> None:
+    p.add_argument(
+        "--debug",
+        action="store_true",
+        default=default,
+        help="show the full traceback of an error (default: one line)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    """The ``gym-coffee`` parser: ``record``, ``fit``, ``evaluate``, ``run`` and the subcommands
+    of the optional modules (``finetune``; ``teleop`` and ``export``)."""
+    parser = ArgumentParser(
         prog="gym-coffee",
-        description="Coffee-task environment and learning from demonstration with local GPs.",
+        description="Coffee-task environment and learning from demonstration with local GPs. "
+        "Exit codes: 0 done, 1 the work failed, 2 bad input, 130 interrupted.",
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _add_debug_option(parser, False)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=ArgumentParser)
     sub.required = True
     add_record_subcommand(sub)
     add_subcommands(sub)
+    for p in sub.choices.values():  # --debug also after the command name
+        _add_debug_option(p, argparse.SUPPRESS)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``gym-coffee``; return the exit code (errors are one line on stderr, see
+    :mod:`lgp_policy.app._common`)."""
     parser = build_parser()
-    args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
-    return int(args.func(args) or 0)
+    try:
+        args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
+    except KeyboardInterrupt:
+        sys.stderr.write("gym-coffee: interrupted\n")
+        return 130
+    return run_command(args.func, args)
 
 
 if __name__ == "__main__":

@@ -1,36 +1,66 @@
 """Subcommands of ``gym-coffee`` that belong to the learning side: ``fit``, ``evaluate``, ``run``
-(and ``finetune``, added by :mod:`lgp_policy.app.finetune_cli` when it is importable).
+(and ``finetune``, ``teleop``, ``export`` when their modules are importable).
 
 * ``gym-coffee fit DEMOS --out POLICY.npz``: encode recorded demonstrations into a policy file.
 * ``gym-coffee evaluate POLICY --episodes N --seed S [--workers K] [--video out.mp4]
-  [--json out.json]``: per-stage success on held-out layouts with 95% Wilson intervals.
+  [--json out.json] [--backend ray [--address ADDR]]``: per-stage success on held-out layouts
+  with 95% Wilson intervals.
 * ``gym-coffee run [--out DIR] [--demos 4] [--episodes 50] [--seed S]``: record demonstrations,
   fit, evaluate, and write the policy, ``results.json``, the figures and a rollout video to DIR.
+
+Every command checks all its arguments (numbers, input files, output names, the overwrite rule)
+before any work starts; see :mod:`lgp_policy.app._common` for the error path.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
+from lgp_policy._io import atomic_write_text
+from lgp_policy.app._common import (
+    UsageError,
+    add_force_option,
+    check_output,
+    check_output_folder,
+    check_seed_room,
+    check_video_output,
+    demos_int,
+    finite_float,
+    input_file,
+    int_range,
+    seed_int,
+)
+from lgp_policy.app.backends import add_backend_arguments
+
 __all__ = ["add_subcommands", "load_policy"]
+
+MAX_WORKERS = 1024
+MAX_EPISODES = 10_000_000
+EVAL_SEED_OFFSET = 10_000
+"""Evaluation layouts use seeds ``10000 + S + i`` (disjoint from demonstration seeds)."""
+MODELS = ("local", "heteroscedastic", "exact", "empirical")
+COMBINE_RULES = ("product", "nearest", "rbcm")
+"""``LocalGP`` combination rules (``lgp_policy.gp.local.COMBINE_RULES``)."""
+workers_int = int_range(1, MAX_WORKERS, what="a number of workers")
+episodes_int = int_range(1, MAX_EPISODES, what="a number of episodes")
 
 
 def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``fit``, ``evaluate``, ``run`` and ``finetune`` to the ``gym-coffee`` parser."""
+    """Add ``fit``, ``evaluate``, ``run`` and the optional modules' subcommands."""
     p = subparsers.add_parser(
         "fit",
         help="fit a GP policy to recorded demonstrations",
         description="Encode demonstrations (a .npz written by `gym-coffee record`) into a "
         "GPDemonstrationPolicy file.",
     )
-    p.add_argument("demos", help="demonstrations file (.npz)")
-    p.add_argument("--out", required=True, help="policy file to write (.npz)")
+    p.add_argument("demos", type=input_file(".npz"), help="demonstrations file (.npz)")
+    p.add_argument("--out", type=Path, required=True, help="policy file to write (.npz)")
     _add_policy_options(p)
-    p.add_argument("--overwrite", action="store_true", help="replace an existing policy file")
+    add_force_option(p, "policy file")
     p.set_defaults(func=cmd_fit)
 
     p = subparsers.add_parser(
@@ -39,12 +69,16 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         description="Run a policy on layouts from seeds 10000+S.. (disjoint from demonstration "
         "seeds) and print per-stage success rates with 95%% Wilson intervals.",
     )
-    p.add_argument("policy", help="policy file (GP policy .npz or residual policy)")
-    p.add_argument("--episodes", type=int, default=100, help="number of layouts (default 100)")
-    p.add_argument("--seed", type=int, default=0, help="layout seed offset S (default 0)")
-    p.add_argument("--workers", type=int, default=1, help="parallel environments (default 1)")
-    p.add_argument("--video", default=None, help="also record the first layout (.mp4 or .gif)")
-    p.add_argument("--json", default=None, help="write the full results as JSON here")
+    p.add_argument("policy", type=input_file(".npz"), help="policy file (GP or residual, .npz)")
+    p.add_argument("--episodes", type=episodes_int, default=100, help="layouts (default 100)")
+    p.add_argument("--seed", type=seed_int, default=0, help="layout seed offset S (default 0)")
+    p.add_argument("--workers", type=workers_int, default=1, help="parallel envs (default 1)")
+    p.add_argument(
+        "--video", type=Path, default=None, help="also record the first layout (.mp4 or .gif)"
+    )
+    p.add_argument("--json", type=Path, default=None, help="write the full results here (.json)")
+    add_backend_arguments(p)
+    add_force_option(p, "--json and --video files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_evaluate)
 
@@ -53,26 +87,35 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         help="demonstrate, fit, evaluate, plot: the whole pipeline in one command",
         description="Record demonstrations with the scripted teacher, fit the local-GP policy, "
         "evaluate it on new layouts and write the policy, results.json, figures (Figs. 1, 2, 4, "
-        "5 of the paper) and a rollout video into --out.",
+        "5 of the paper) and a rollout video into --out (a new or empty folder; --force "
+        "replaces the files of an earlier run there and leaves other files alone).",
     )
     p.add_argument(
-        "--out", default="gym-coffee-run", help="output folder (default ./gym-coffee-run)"
+        "--out",
+        type=Path,
+        default=Path("gym-coffee-run"),
+        help="output folder (default ./gym-coffee-run)",
     )
-    p.add_argument("--demos", type=int, default=4, help="number of demonstrations (default 4)")
-    p.add_argument("--episodes", type=int, default=50, help="evaluation layouts (default 50)")
-    p.add_argument("--seed", type=int, default=0, help="seed of demonstrations and layouts")
-    p.add_argument("--workers", type=int, default=1, help="parallel environments for evaluation")
+    p.add_argument("--demos", type=demos_int, default=4, help="demonstrations (default 4)")
+    p.add_argument("--episodes", type=episodes_int, default=50, help="layouts (default 50)")
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of demonstrations and layouts")
+    p.add_argument("--workers", type=workers_int, default=1, help="parallel envs for evaluation")
     p.add_argument("--no-video", action="store_true", help="skip the rollout video")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     _add_policy_options(p)
+    add_force_option(p, "files of an earlier run in --out")
     p.set_defaults(func=cmd_run)
 
-    try:  # the residual-RL subcommand lives in its own module (optional extra)
-        from lgp_policy.app.finetune_cli import add_finetune_subcommand
-    except ImportError:  # pragma: no cover - depends on the checkout
-        pass
-    else:
-        add_finetune_subcommand(subparsers)
+    for module, name in (
+        ("lgp_policy.app.finetune_cli", "add_finetune_subcommand"),  # residual RL (rl extra)
+        ("lgp_policy.app.data_commands", "add_subcommands"),  # teleop, export
+    ):
+        try:
+            add = getattr(importlib.import_module(module), name, None)
+        except ImportError:  # pragma: no cover - an optional part absent from this install
+            continue
+        if add is not None:
+            add(subparsers)
 
 
 def _add_policy_options(p: argparse.ArgumentParser) -> None:
@@ -80,17 +123,30 @@ def _add_policy_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--model",
         default="local",
-        choices=("local", "heteroscedastic", "exact", "empirical"),
+        choices=MODELS,
         help="encoder (default: local heteroscedastic GP, as in the paper)",
     )
     g.add_argument(
-        "--combine", default=None, help="LocalGP combination rule (product, nearest, rbcm)"
+        "--combine",
+        default=None,
+        choices=COMBINE_RULES,
+        help="LocalGP combination rule (with --model local)",
     )
-    g.add_argument("--alpha", type=float, default=None, help="null-space weight (default 0.5)")
+    g.add_argument(
+        "--alpha",
+        type=finite_float(0.0, 1.0),
+        default=None,
+        help="null-space weight in [0, 1] (default 0.5)",
+    )
     g.add_argument("--joint-only", action="store_true", help="ignore the object frames (ablation)")
 
 
 def _policy_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """The policy's keyword arguments; raises :class:`UsageError` for inconsistent options."""
+    if args.combine is not None and args.model != "local":
+        raise UsageError(
+            f"argument --combine: applies to --model local only, not --model {args.model}"
+        )
     kwargs: dict[str, Any] = {"model": args.model}
     if args.combine is not None:
         kwargs["combine"] = args.combine
@@ -102,62 +158,91 @@ def _policy_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def load_policy(path: str | Path) -> Any:
-    """Open a GP policy ``.npz`` or any other policy kind this project writes (residual)."""
+    """Open a GP policy ``.npz`` or a residual policy file (dispatching on its ``kind``)."""
     try:
-        from lgp_policy.residual.core import load_any_policy
+        from lgp_policy.residual import load_any_policy  # type: ignore[attr-defined]
     except ImportError:
-        load_any_policy = None
-    if load_any_policy is not None:
-        return load_any_policy(path)
-    from lgp_policy.lfd.policy import GPDemonstrationPolicy
+        try:  # until the residual package exports it
+            from lgp_policy.residual.core import load_any_policy
+        except ImportError:  # no residual support in this install: GP policies only
+            from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
-    return GPDemonstrationPolicy.load(path)
+            return GPDemonstrationPolicy.load(path)
+    return load_any_policy(path)
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from gym_coffee.demonstrations import DemonstrationSet
     from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
+    out = check_output("--out", args.out, force=args.force, suffixes=(".npz",), inputs=[args.demos])
+    kwargs = _policy_kwargs(args)
     demos = DemonstrationSet.load(args.demos)
-    out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        print(f"error: {out} exists; pass --overwrite to replace it", file=sys.stderr)
-        return 2
+    policy = GPDemonstrationPolicy(**kwargs)
     print(f"fitting {len(demos)} demonstrations ({args.model}) ...", flush=True)
-    policy = GPDemonstrationPolicy(**_policy_kwargs(args)).fit(demos, progress=True)
-    path = policy.save(out, overwrite=args.overwrite)
+    policy.fit(demos, progress=True)
+    path = policy.save(out, overwrite=args.force)
     print(f"fitted in {policy.fit_time_:.1f} s; wrote {path}")
     for iv in policy.constraints_["intervals"]:
         print(f"  tight: {iv['label']}")
     return 0
 
 
+def _check_evaluate(args: argparse.Namespace) -> None:
+    check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
+    outputs = {}
+    if args.json is not None:
+        outputs["--json"] = check_output(
+            "--json", args.json, force=args.force, suffixes=(".json",), inputs=[args.policy]
+        )
+    if args.video is not None:
+        outputs["--video"] = check_video_output("--video", args.video, force=args.force)
+    if len({p.absolute() for p in outputs.values()}) < len(outputs):
+        raise UsageError("argument --video: the same file as --json")
+    if args.chunk_size is not None and args.chunk_size < 1:
+        raise UsageError(f"argument --chunk-size: expected an integer >= 1, got {args.chunk_size}")
+    if args.address is not None and args.backend != "ray":
+        raise UsageError("argument --address: needs --backend ray")
+    if args.backend == "ray" and importlib.util.find_spec("ray") is None:
+        raise UsageError("argument --backend: ray is not installed (pip install 'gym-coffee[ray]')")
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from lgp_policy.app.evaluation import evaluate_policy_stages, format_results
 
+    _check_evaluate(args)
     policy = load_policy(args.policy)
-    result = evaluate_policy_stages(
+    result = evaluate_policy_stages(  # the video is rendered during the evaluation itself
         policy,
         args.episodes,
         seed=args.seed,
         workers=args.workers,
         video=args.video,
         progress=not args.no_progress,
+        backend=args.backend,
+        address=args.address,
+        chunk_size=args.chunk_size,
+        force=args.force,
     )
     print(format_results(result))
     if result.get("video"):
         print(f"video: {result['video']}")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(result, indent=2))
+    if args.json is not None:
+        atomic_write_text(args.json, json.dumps(result, indent=2), force=args.force)
         print(f"results: {args.json}")
     return 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from lgp_policy.app.pipeline import run_pipeline
+    from lgp_policy.app import pipeline
 
-    run_pipeline(
+    stale = check_output_folder("--out", args.out, force=args.force, owned=pipeline.RUN_FILES)
+    check_seed_room(args.seed, 100 * args.demos, "--demos", args.demos)
+    check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
+    kwargs = _policy_kwargs(args)
+    for path in stale:  # --force: the earlier run's files go first, so no mix of two runs
+        path.unlink(missing_ok=True)
+    pipeline.run_pipeline(
         args.out,
         n_demos=args.demos,
         n_episodes=args.episodes,
@@ -165,6 +250,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         workers=args.workers,
         video=not args.no_video,
         plots=not args.no_plots,
-        policy_kwargs=_policy_kwargs(args),
+        policy_kwargs=kwargs,
     )
     return 0

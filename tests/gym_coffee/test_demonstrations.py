@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gym_coffee import ENV_ID
 from gym_coffee.demonstrations import (
+    ACTION_DIMS,
     SCHEMA_VERSION,
     Demonstration,
     DemonstrationFormatError,
@@ -24,22 +26,35 @@ from gym_coffee.demonstrations import (
 OBS_DIM = 41
 
 
-def make_demo(rng: np.random.Generator, n_steps: int, seed: int = 0) -> Demonstration:
+def unit_quats(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def make_demo(
+    rng: np.random.Generator,
+    n_steps: int,
+    seed: int = 0,
+    action_type: str = "joint",
+    obs_dim: int = OBS_DIM,
+) -> Demonstration:
+    """Random arrays within the schema's ranges (no simulator); also used by test_datasets."""
     return Demonstration(
         time=np.arange(n_steps) * 0.05,
-        joint_pos=rng.normal(size=(n_steps, 7)),
+        joint_pos=rng.uniform(-2, 2, size=(n_steps, 7)),
         gripper=rng.uniform(0, 0.08, size=n_steps),
-        ee_pos=rng.normal(size=(n_steps, 3)),
-        object_pos={"cup": rng.normal(size=(n_steps, 3)), "machine": rng.normal(size=(n_steps, 3))},
-        object_quat={
-            "cup": rng.normal(size=(n_steps, 4)),
-            "machine": rng.normal(size=(n_steps, 4)),
+        ee_pos=rng.normal(0, 0.3, size=(n_steps, 3)),
+        object_pos={
+            "cup": rng.normal(0, 0.3, size=(n_steps, 3)),
+            "machine": rng.normal(0, 0.3, size=(n_steps, 3)),
         },
+        object_quat={"cup": unit_quats(rng, n_steps), "machine": unit_quats(rng, n_steps)},
         stages=rng.random((n_steps, 3)) > 0.5,
-        actions=rng.uniform(-1, 1, size=(n_steps, 8)).astype(np.float32),
-        observations=rng.normal(size=(n_steps, OBS_DIM)).astype(np.float32),
+        actions=rng.uniform(-1, 1, size=(n_steps, ACTION_DIMS[action_type])).astype(np.float32),
+        observations=rng.normal(size=(n_steps, obs_dim)).astype(np.float32),
         seed=seed,
         success=True,
+        action_type=action_type,
     )
 
 
@@ -48,11 +63,11 @@ def demos() -> DemonstrationSet:
     rng = np.random.default_rng(0)
     return DemonstrationSet(
         [make_demo(rng, 30, seed=3), make_demo(rng, 25, seed=4), make_demo(rng, 1, seed=7)],
-        metadata={"env_id": "gym_coffee/CoffeeTask-v0", "env_kwargs": {"a": 1}, "seeds": [3, 4, 7]},
+        metadata={"env_id": ENV_ID, "env_kwargs": {"a": 1}, "seeds": [3, 4, 7]},
     )
 
 
-def rewrite(path: Path, out: Path, **changes) -> None:
+def rewrite(path: Path, out: Path, compressed: bool = False, **changes) -> None:
     """Copy an .npz, replacing (value) or deleting (None) arrays."""
     with np.load(path, allow_pickle=False) as npz:
         arrays = {k: npz[k] for k in npz.files}
@@ -62,7 +77,7 @@ def rewrite(path: Path, out: Path, **changes) -> None:
             del arrays[key]
         else:
             arrays[key] = value
-    np.savez(out, **arrays)
+    (np.savez_compressed if compressed else np.savez)(out, **arrays)
 
 
 def load_error(path: Path) -> str:
@@ -164,10 +179,25 @@ def test_truncated_file(demos, tmp_path, keep):
     assert "cut.npz" in msg and ("truncated or corrupt" in msg)
 
 
-def test_not_a_zip(tmp_path):
+@pytest.mark.parametrize(
+    ("content", "kind"),
+    [
+        (b"time,x\n0.0,1.0\n", "a text file"),
+        (b"", "an empty file"),
+        (b"\x00\xff\x10\x80binary", "not a zip archive"),
+        (None, "a single .npy array"),
+    ],
+)
+def test_not_an_npz_file(tmp_path, content, kind):
+    """A text (or other) file renamed .npz: one clear line, not numpy's allow_pickle hint."""
     path = tmp_path / "x.npz"
-    path.write_text("hello")
-    assert "not a readable .npz" in load_error(path)
+    if content is None:
+        np.save(tmp_path / "a.npy", np.zeros(3))
+        content = (tmp_path / "a.npy").read_bytes()
+    path.write_bytes(content)
+    msg = load_error(path)
+    assert f"is not an .npz file ({kind};" in msg and "x.npz" in msg
+    assert "pickle" not in msg
 
 
 def test_missing_file(tmp_path):
@@ -352,7 +382,7 @@ def test_collect_one_real_demonstration_from_a_raw_env(tmp_path):
         env.close()
     demo = demos[0]
     meta = demos.metadata
-    assert meta["env_id"] == "gym_coffee/CoffeeTask-v0"  # found through the registry
+    assert meta["env_id"] == ENV_ID  # found through the registry
     assert meta["seeds"] == [demo.seed] and demo.success
     assert meta["control_dt"] == pytest.approx(CONTROL_DT)
     obs = demo.observations
@@ -375,3 +405,221 @@ def gym_coffee_collect(env, **kwargs):
     from gym_coffee import collect_demonstrations
 
     return collect_demonstrations(env, **kwargs)
+
+
+# -- bounded, pickle-free loading (issue 8) --------------------------------------------------------
+
+
+def add_members(path: Path, out: Path, members: dict[str, bytes]) -> None:
+    """Copy a zip and add raw members."""
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            dst.writestr(info, src.read(info))
+        for name, data in members.items():
+            dst.writestr(name, data)
+
+
+def npy_bytes(arr: np.ndarray, header_shape: tuple[int, ...] | None = None) -> bytes:
+    """The .npy encoding of ``arr``; ``header_shape`` makes the header lie about the shape."""
+    import io
+
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf,
+        {
+            "descr": np.lib.format.dtype_to_descr(arr.dtype),
+            "fortran_order": False,
+            "shape": arr.shape if header_shape is None else header_shape,
+        },
+    )
+    return buf.getvalue() + arr.tobytes()
+
+
+def test_unknown_members_are_never_read(demos, tmp_path):
+    """Arrays the schema does not know -- a pickle, a zip bomb -- are ignored unread."""
+    path = demos.save(tmp_path / "d.npz")
+    bomb = np.zeros(20_000_000, np.uint8)  # 20 MB of zeros: ~20 kB compressed
+    pickled = (
+        b"\x93NUMPY\x01\x00v\x00{'descr': '|O', 'fortran_order': False, 'shape': (1,), }"
+        + b" " * 41
+        + b"\n"
+        + b"\x80\x04\x95\x00"
+    )
+    add_members(path, tmp_path / "x.npz", {"bomb.npy": npy_bytes(bomb), "evil.npy": pickled})
+    assert DemonstrationSet.load(tmp_path / "x.npz", max_bytes=1_000_000) == demos
+
+
+def test_declared_size_is_checked_before_decompressing(demos, tmp_path):
+    """A known member that declares more than max_bytes is refused before it is inflated."""
+    import tracemalloc
+
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(
+        path,
+        tmp_path / "bomb.npz",
+        compressed=True,
+        observations=np.zeros((56, 200_000), np.float32),
+    )
+    size = (tmp_path / "bomb.npz").stat().st_size
+    assert size < 1_000_000  # 45 MB of zeros compress to a small file
+    tracemalloc.start()
+    try:
+        msg = load_error_kw(tmp_path / "bomb.npz", max_bytes=1_000_000)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert "'observations' declares 44800128 bytes uncompressed; the limit is 1000000" in msg
+    assert peak < 1_000_000
+
+
+def test_file_larger_than_the_limit(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    msg = load_error_kw(path, max_bytes=1000)
+    assert f"has {path.stat().st_size} bytes; the limit is 1000" in msg
+
+
+def test_npy_header_that_lies_about_the_shape(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    rewrite(path, tmp_path / "w.npz", time=None)
+    add_members(
+        tmp_path / "w.npz",
+        tmp_path / "lie.npz",
+        {"time.npy": npy_bytes(np.zeros(56), header_shape=(10**12,))},
+    )
+    msg = load_error(tmp_path / "lie.npz")
+    assert "'time' has shape (1000000000000,)" in msg and "holds 448 bytes" in msg
+
+
+def test_load_from_memory_and_never_writes(demos, tmp_path):
+    import io
+
+    path = demos.save(tmp_path / "d.npz")
+    before = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
+    assert DemonstrationSet.load(io.BytesIO(path.read_bytes())) == demos
+    assert DemonstrationSet.load(path) == demos
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == before
+    with pytest.raises(DemonstrationFormatError, match=r"demonstration file is not an \.npz"):
+        DemonstrationSet.load(io.BytesIO(b"hello"))
+
+
+def load_error_kw(path: Path, **kwargs) -> str:
+    with pytest.raises(DemonstrationFormatError) as info:
+        DemonstrationSet.load(path, **kwargs)
+    return str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("name", "row", "value", "expected"),
+    [
+        (
+            "actions",
+            40,
+            1.5,
+            "'actions' has a value outside [-1, 1]: 1.5 at index (40, 0); "
+            "row 40 is demonstration 1, step 10",
+        ),
+        ("ee_pos", 3, 1e300, "'ee_pos' has a value outside [-5, 5]"),
+        ("gripper", 0, -0.5, "'gripper' has a value outside [0, 0.1]"),
+        ("joint_pos", 55, 7.0, "row 55 is demonstration 2, step 0"),
+        ("observations", 1, 1e20, "'observations' has a value outside [-10000, 10000]"),
+        (
+            "object_quat.cup",
+            31,
+            0.0,
+            "demonstration 1: array 'object_quat.cup' row 1 is not a unit quaternion",
+        ),
+        ("time", 2, 0.01, "demonstration 0: array 'time' does not increase at step 2"),
+    ],
+)
+def test_values_out_of_range(demos, tmp_path, name, row, value, expected):
+    path = demos.save(tmp_path / "d.npz")
+    with np.load(path) as npz:
+        arr = npz[name].copy()
+    arr.reshape(arr.shape[0], -1)[row, 0] = value
+    rewrite(path, tmp_path / "w.npz", **{name.replace(".", "__"): arr})
+    assert expected in load_error(tmp_path / "w.npz")
+
+
+def test_negative_seed_and_bad_action_type(demos, tmp_path):
+    path = demos.save(tmp_path / "d.npz")
+    edit_metadata(path, tmp_path / "m.npz", seeds=[3, 4, -7])
+    rewrite(tmp_path / "m.npz", tmp_path / "w.npz", seeds=np.array([3, 4, -7]))
+    assert "'seeds' has entries outside [0, 2**63)" in load_error(tmp_path / "w.npz")
+    edit_metadata(path, tmp_path / "a.npz", action_type="mind_control")
+    assert "action_type is 'mind_control'; expected one of" in load_error(tmp_path / "a.npz")
+    edit_metadata(path, tmp_path / "o.npz", obs_dim=10**9)
+    assert "'obs_dim' is 1000000000" in load_error(tmp_path / "o.npz")
+
+
+def test_schema_version_1_files_still_load(demos, tmp_path):
+    """Version 1 had joint actions only and no action_type."""
+    path = demos.save(tmp_path / "d.npz")
+    with np.load(path) as npz:
+        meta = json.loads(str(npz["metadata"]))
+    del meta["action_type"]
+    meta["schema_version"] = 1
+    rewrite(path, tmp_path / "v1.npz", metadata=np.array(json.dumps(meta)))
+    loaded = DemonstrationSet.load(tmp_path / "v1.npz")
+    assert loaded == demos and loaded.action_type == "joint"
+
+
+@pytest.mark.parametrize("action_type", ["ee", "ee_rot"])
+def test_end_effector_actions_round_trip(tmp_path, action_type):
+    rng = np.random.default_rng(2)
+    demos = DemonstrationSet([make_demo(rng, 6, 1, action_type), make_demo(rng, 4, 2, action_type)])
+    assert demos[0].actions.shape == (6, ACTION_DIMS[action_type])
+    np.testing.assert_array_equal(demos[0].gripper_command, demos[0].actions[:, -1])
+    loaded = DemonstrationSet.load(demos.save(tmp_path / "d.npz"))
+    assert loaded == demos and loaded.action_type == action_type
+    with np.load(tmp_path / "d.npz") as npz:
+        assert json.loads(str(npz["metadata"]))["action_type"] == action_type
+    with pytest.raises(DemonstrationFormatError, match="action_type 'joint', demonstration 0"):
+        DemonstrationSet([demos[0], make_demo(rng, 3)])
+    with pytest.raises(DemonstrationFormatError, match=r"'actions' has shape \(6, 4\)"):
+        Demonstration(**{**vars(demos[0]), "action_type": "ee_rot", "actions": np.zeros((6, 4))})
+
+
+def test_teacher_refuses_an_end_effector_env():
+    import gym_coffee.demonstrations as demonstrations
+
+    env = _FakeEnv()
+    env.action_type = "ee"
+    with pytest.raises(ValueError, match="action_type='joint'"):
+        demonstrations.collect_demonstrations(env, n=1)
+
+
+# -- videos ----------------------------------------------------------------------------------------
+
+
+def test_video_is_never_overwritten_by_default(tmp_path):
+    from gym_coffee.video import write_video
+
+    frames = [np.full((8, 10, 3), 20 * i, np.uint8) for i in range(4)]
+    path = tmp_path / "v.gif"
+    path.write_bytes(b"precious")
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        write_video(path, frames)
+    assert path.read_bytes() == b"precious"
+    write_video(path, frames, overwrite=True)
+    assert path.read_bytes()[:3] == b"GIF"
+    assert sorted(os.listdir(tmp_path)) == ["v.gif"]
+    for fps in (0, -1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="fps must be a positive finite number"):
+            write_video(tmp_path / "w.gif", frames, fps=fps)
+    with pytest.raises(ValueError, match="frame 1 contains NaN"):
+        write_video(tmp_path / "w.gif", [np.zeros((4, 4, 3)), np.full((4, 4, 3), np.nan)])
+    assert sorted(os.listdir(tmp_path)) == ["v.gif"]
+
+
+def test_failed_video_write_leaves_no_file(tmp_path, monkeypatch):
+    import imageio.v3 as iio3
+
+    from gym_coffee.video import write_video
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(iio3, "imwrite", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        write_video(tmp_path / "v.gif", [np.zeros((4, 4, 3), np.uint8)])
+    assert os.listdir(tmp_path) == []

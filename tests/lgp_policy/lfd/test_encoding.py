@@ -131,3 +131,40 @@ def test_landmark_alignment_puts_events_at_their_mean_phase():
     assert enc.landmark_phases_ == pytest.approx([0.5])
     d = enc.data_["joint"][:, :, 0]
     assert np.abs(d[0] - d[1]).max() <= 1.0 and np.abs(d[0] - d[1]).sum() < 1.0
+
+
+def test_planar_frames_match_the_spatial_encoding_of_the_same_motion():
+    """2-D frames (origin (2,), rotation (2, 2), ee_pos (n, 2k)) give the first two columns of
+    the 3-D encoding of the same planar motion, and wrong shapes are refused by name."""
+    times, joints, ees, frames = synthetic_demos(n=3, seed=3)
+    rng = np.random.default_rng(4)
+    frames3, frames2, ees2 = [], [], []
+    for f, ee in zip(frames, ees, strict=True):
+        yaw = rng.uniform(-1.0, 1.0)
+        R2 = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        R3 = np.eye(3)
+        R3[:2, :2] = R2
+        o = f["cup"][0]
+        frames3.append({"cup": (o, R3)})
+        frames2.append({"cup": (o[:2], R2)})
+        ees2.append(np.hstack([ee[:, :2], ee[:, :2] + 0.1]))  # two points on the hand
+    z = [np.zeros((len(e), 1)) for e in ees2]
+    ees3 = [np.hstack([e[:, :2], zi, e[:, 2:], zi]) for e, zi in zip(ees2, z, strict=True)]
+    enc3 = DemonstrationEncoder(n_steps=40, model="empirical").fit(times, joints, ees3, frames3)
+    enc2 = DemonstrationEncoder(n_steps=40, model="empirical").fit(times, joints, ees2, frames2)
+    d3, d2 = enc3.data_["cup"], enc2.data_["cup"]
+    assert d2.shape == (3, 40, 4)
+    np.testing.assert_allclose(d2[:, :, :2], d3[:, :, :2], atol=1e-12)
+    np.testing.assert_allclose(d2[:, :, 2:], d3[:, :, 3:5], atol=1e-12)
+    m, s = enc2.predict(np.linspace(0, 1, 7), "cup")
+    assert m.shape == s.shape == (7, 4)
+    bad = [dict(f) for f in frames2]
+    bad[1] = {"cup": (bad[1]["cup"][0], np.eye(3))}
+    with pytest.raises(
+        ValueError, match=r"frames\[1\]\['cup'\]: rotation must have shape \(2, 2\)"
+    ):
+        DemonstrationEncoder(model="empirical").fit(times, joints, ees2, bad)
+    with pytest.raises(ValueError, match=r"ee_pos\[0\] must have shape \(n_steps, k \* 2\)"):
+        DemonstrationEncoder(model="empirical").fit(
+            times, joints, [e[:, :3] for e in ees2], frames2
+        )

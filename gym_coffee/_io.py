@@ -1,0 +1,290 @@
+"""Safe file writing and bounded ``.npz`` reading for gym_coffee's own files.
+
+Two things every file of the task package needs (demonstrations, videos, dataset exports):
+
+* :func:`atomic_output` -- write to a temporary file in the target's folder and move it onto the
+  target only when the write is complete, never replacing an existing file unless asked to.
+* :class:`NpzReader` -- read selected members of an ``.npz`` archive without pickle and without
+  trusting any size in it: the archive's size, each member's declared (uncompressed) size in the
+  zip directory and the ``.npy`` header's shape and dtype are all checked against limits *before*
+  anything is decompressed, and only the members asked for are ever read.
+
+(``lgp_policy`` has its own file helper; ``gym_coffee`` must not import ``lgp_policy``.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+import tempfile
+import zipfile
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from numpy.lib import format as npy_format
+from numpy.typing import NDArray
+
+__all__ = ["FileFormatError", "NpzReader", "atomic_output", "refuse_existing"]
+
+#: Largest ``.npy`` header read (bytes); numpy's own default limit.
+MAX_NPY_HEADER = 10_000
+#: dtype kinds a member may have: bool, signed/unsigned integers, floats, unicode text.
+_ALLOWED_KINDS = frozenset("biufU")
+
+
+class FileFormatError(ValueError):
+    """A file cannot be read as what it claims to be; the message says what is wrong."""
+
+
+def refuse_existing(path: Path, overwrite: bool, hint: str = "pass overwrite=True") -> None:
+    """Raise ``FileExistsError`` if ``path`` exists and ``overwrite`` is false."""
+    if not overwrite and (path.exists() or path.is_symlink()):
+        raise FileExistsError(f"{path} exists; {hint} (CLI: --force) to replace it")
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_output(
+    path: str | os.PathLike[str], *, overwrite: bool = False, suffix: str = ".tmp"
+) -> Iterator[Path]:
+    """Context manager yielding a temporary path next to ``path``; on success it becomes ``path``.
+
+    Write the complete file to the yielded path inside the ``with`` block. When the block ends
+    without an exception the file is flushed to disk, given the usual permissions (``0666 &
+    ~umask``) and moved onto ``path``: with ``overwrite`` by ``os.replace``, otherwise by a hard
+    link, which fails if ``path`` appeared in the meantime (no silent clobbering in a race).
+    On an exception, or a full disk, the temporary file is removed and an existing ``path`` is
+    untouched.
+
+    Args:
+        path: the file to produce. Its folder must exist.
+        overwrite: replace an existing ``path``; otherwise an existing one is refused up front.
+        suffix: suffix of the temporary file (some writers choose the format from it).
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is false.
+        FileNotFoundError: the folder of ``path`` does not exist.
+    """
+    path = Path(path)
+    refuse_existing(path, overwrite)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=folder)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                raise FileExistsError(
+                    f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
+                ) from None
+            except OSError:  # a file system without hard links
+                refuse_existing(path, overwrite)
+                os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+class NpzReader:
+    """Bounded, pickle-free reader of selected members of an ``.npz`` archive.
+
+    Use as a context manager. ``members`` lists the array names in the archive (``name.npy``
+    entries); :meth:`header` returns a member's shape and dtype from its ``.npy`` header only, and
+    :meth:`read` reads one member after checking its declared sizes. Nothing is decompressed
+    except the ``.npy`` headers of members asked about and the data of members read.
+
+    Args:
+        source: a path or a binary file object (e.g. ``io.BytesIO``).
+        max_bytes: the most bytes the archive may have on disk and any single member may
+            declare uncompressed; :meth:`read` also refuses once the members read so far would
+            exceed it in total.
+        what: how to call the file in messages (default: the path).
+
+    Raises:
+        FileNotFoundError: ``source`` is a path and there is no such file.
+        FileFormatError: the file is larger than ``max_bytes`` or is not a zip archive.
+    """
+
+    def __init__(
+        self, source: str | os.PathLike[str] | BinaryIO, *, max_bytes: int, what: str | None = None
+    ) -> None:
+        self.max_bytes = int(max_bytes)
+        self._read_total = 0
+        if isinstance(source, (str, os.PathLike)):
+            path = Path(source)
+            self.what = what or str(path)
+            if not path.is_file():
+                raise FileNotFoundError(f"no file at {path}")
+            size = path.stat().st_size
+            fh: BinaryIO = open(path, "rb")  # closed by close()
+        else:
+            fh = source
+            self.what = what or "the file"
+            size = fh.seek(0, io.SEEK_END)
+            fh.seek(0)
+        self._fh = fh
+        self._own = isinstance(source, (str, os.PathLike))
+        try:
+            if size > self.max_bytes:
+                raise FileFormatError(
+                    f"{self.what} has {size} bytes; the limit is {self.max_bytes} "
+                    "(raise max_bytes to read larger files)"
+                )
+            if size < 4 or fh.read(4) != b"PK\x03\x04":
+                fh.seek(0)
+                start = fh.read(64)
+                if not start:
+                    kind = "an empty file"
+                elif start.startswith(b"\x93NUMPY"):
+                    kind = "a single .npy array"
+                elif _looks_like_text(start):
+                    kind = "a text file"
+                else:
+                    kind = "not a zip archive"
+                raise FileFormatError(
+                    f"{self.what} is not an .npz file ({kind}; an .npz file is a zip archive "
+                    "of .npy arrays)"
+                )
+            fh.seek(0)
+            try:
+                self._zip = zipfile.ZipFile(fh)
+            except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+                raise FileFormatError(
+                    f"{self.what} is not a readable .npz file (truncated or corrupt?): {exc}"
+                ) from exc
+        except BaseException:
+            self.close()
+            raise
+        infos: dict[str, zipfile.ZipInfo] = {}
+        for info in self._zip.infolist():
+            if info.filename.endswith(".npy"):
+                infos.setdefault(info.filename[: -len(".npy")], info)
+        self._infos = infos
+
+    # -- context manager ----------------------------------------------------------------------
+    def __enter__(self) -> NpzReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the archive (and the file, if this reader opened it)."""
+        zf = getattr(self, "_zip", None)
+        if zf is not None:
+            zf.close()
+        if self._own:
+            self._fh.close()
+
+    # -- reading ------------------------------------------------------------------------------
+    @property
+    def members(self) -> frozenset[str]:
+        """Names of the ``.npy`` members (without the suffix)."""
+        return frozenset(self._infos)
+
+    def _open(self, name: str) -> tuple[Any, tuple[int, ...], np.dtype[Any], bool, int]:
+        """Open member ``name``; return (stream after the header, shape, dtype, fortran, data
+        bytes) after checking the declared sizes."""
+        if name not in self._infos:
+            raise FileFormatError(f"{self.what}: missing array {name!r}")
+        info = self._infos[name]
+        if info.file_size > self.max_bytes:
+            raise FileFormatError(
+                f"{self.what}: array {name!r} declares {info.file_size} bytes uncompressed; the "
+                f"limit is {self.max_bytes}"
+            )
+        try:
+            stream = self._zip.open(info)
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+            raise self._corrupt(name, exc) from exc
+        try:
+            version = npy_format.read_magic(stream)
+            if version == (1, 0):
+                hdr = npy_format.read_array_header_1_0(stream, max_header_size=MAX_NPY_HEADER)
+            elif version in ((2, 0), (3, 0)):
+                hdr = npy_format.read_array_header_2_0(stream, max_header_size=MAX_NPY_HEADER)
+            else:
+                raise ValueError(f"unknown .npy format version {version}")
+            header_len = stream.tell()
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, SyntaxError) as exc:
+            stream.close()
+            raise self._corrupt(name, exc) from exc
+        shape, fortran, dtype = hdr
+        if dtype.hasobject or dtype.names is not None or dtype.subdtype is not None:
+            stream.close()
+            raise FileFormatError(
+                f"{self.what}: array {name!r} has dtype {dtype} (Python objects, pickle or "
+                "records); these files hold plain numbers and text only"
+            )
+        if dtype.kind not in _ALLOWED_KINDS:
+            stream.close()
+            raise FileFormatError(
+                f"{self.what}: array {name!r} has dtype {dtype}; expected numbers or text"
+            )
+        n_bytes = math.prod(shape) * dtype.itemsize
+        if header_len + n_bytes != info.file_size:
+            stream.close()
+            raise FileFormatError(
+                f"{self.what}: array {name!r} has shape {shape} and dtype {dtype} "
+                f"({n_bytes} bytes) but its member holds {info.file_size - header_len} bytes "
+                "of data (corrupt file?)"
+            )
+        return stream, tuple(int(d) for d in shape), dtype, bool(fortran), n_bytes
+
+    def header(self, name: str) -> tuple[tuple[int, ...], np.dtype[Any]]:
+        """Shape and dtype of member ``name``, from its ``.npy`` header (data not read)."""
+        stream, shape, dtype, _fortran, _n = self._open(name)
+        stream.close()
+        return shape, dtype
+
+    def read(self, name: str) -> NDArray[Any]:
+        """Read member ``name`` (sizes checked before decompressing; never unpickles)."""
+        stream, shape, dtype, fortran, n_bytes = self._open(name)
+        if self._read_total + n_bytes > self.max_bytes:
+            stream.close()
+            raise FileFormatError(
+                f"{self.what}: reading array {name!r} ({n_bytes} bytes) would exceed the "
+                f"limit of {self.max_bytes} bytes in total"
+            )
+        try:
+            with stream:
+                data = stream.read(n_bytes)
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+            raise self._corrupt(name, exc) from exc
+        if len(data) != n_bytes:
+            raise self._corrupt(name, EOFError(f"{len(data)} of {n_bytes} bytes"))
+        self._read_total += n_bytes
+        arr = np.frombuffer(data, dtype=dtype)
+        return arr.reshape(shape, order="F" if fortran else "C").copy()
+
+    def _corrupt(self, name: str, exc: BaseException) -> FileFormatError:
+        return FileFormatError(
+            f"{self.what}: array {name!r} cannot be read (truncated or corrupt file?): {exc}"
+        )
+
+
+def _looks_like_text(start: bytes) -> bool:
+    """Whether the first bytes of a file look like UTF-8 text (a multi-byte character may be cut
+    at the end)."""
+    text = start.decode("utf-8", errors="replace").rstrip("\ufffd")
+    return all(c.isprintable() or c in "\r\n\t" for c in text)

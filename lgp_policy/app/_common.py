@@ -1,0 +1,281 @@
+"""What every ``gym-coffee`` subcommand shares: argument types that check values while parsing,
+output checks that run before any work (the one overwrite rule, ``--force``), and the one error
+path (``gym-coffee CMD: error: ...``, exit code 2; ``--debug`` shows the traceback).
+
+Exit codes: 0 success; 1 the work failed (e.g. the disk is full, the teacher failed on every
+layout, an optional package is missing); 2 bad input (an argument or an input file); 130
+interrupted (Ctrl-C). See ``docs/files-and-errors.md``.
+
+Other modules that add subcommands (``finetune``, ``teleop``, ``export``) use these helpers and
+raise :class:`ValueError` (or :class:`FileExistsError`, :class:`FileNotFoundError`) for bad input;
+:func:`run_command` turns any of them into the one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import math
+import os
+import sys
+import traceback
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any, NoReturn
+
+from lgp_policy._io import check_output_path
+
+__all__ = [
+    "EXIT_FAILURE",
+    "EXIT_INTERRUPTED",
+    "EXIT_USAGE",
+    "MAX_DEMOS",
+    "MAX_SEED",
+    "ArgumentParser",
+    "UsageError",
+    "add_force_option",
+    "check_output",
+    "check_output_folder",
+    "check_seed_room",
+    "check_video_output",
+    "demos_int",
+    "finite_float",
+    "input_file",
+    "int_range",
+    "non_negative_int",
+    "positive_int",
+    "run_command",
+    "seed_int",
+]
+
+PROG = "gym-coffee"
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+MAX_SEED = 2**31 - 1
+"""Largest seed any layout may get (seeds are also offset, e.g. ``10000 + S + i``)."""
+MAX_DEMOS = 10_000
+"""Most demonstrations one command records (``record --n``, ``run --demos``)."""
+VIDEO_SUFFIXES = (".mp4", ".gif")
+"""Video formats (``gym_coffee.video.VIDEO_SUFFIXES``; ``.mp4`` needs ``imageio-ffmpeg``)."""
+
+
+class UsageError(ValueError):
+    """Bad command-line input; the message names the argument (``argument --out: ...``)."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """An :class:`argparse.ArgumentParser` whose errors are one line (no usage block):
+    ``gym-coffee CMD: error: <message> (see gym-coffee CMD --help)``, exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+        sys.exit(EXIT_USAGE)
+
+
+# ----------------------------------------------------------------------- argument types
+def int_range(lo: int, hi: int | None = None, *, what: str = "an integer") -> Callable[[str], int]:
+    """An argparse ``type`` accepting integers in ``[lo, hi]``."""
+    bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what} {bound}, got {text!r}") from None
+        if value < lo or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"expected {what} {bound}, got {value}")
+        return value
+
+    parse.__name__ = what
+    return parse
+
+
+positive_int = int_range(1, None, what="an integer")
+non_negative_int = int_range(0, None, what="an integer")
+demos_int = int_range(1, MAX_DEMOS, what="a number of demonstrations")
+seed_int = int_range(0, MAX_SEED, what="a seed")
+
+
+def finite_float(
+    lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False
+) -> Callable[[str], float]:
+    """An argparse ``type`` accepting finite floats in ``[lo, hi]`` (``(lo, hi]`` if
+    ``lo_open``); NaN and inf are refused."""
+    left = "(" if lo_open else "["
+    bound = f"in {left}{lo:g}, {hi:g}]"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number {bound}, got {text!r}") from None
+        if not math.isfinite(value) or value < lo or value > hi or (lo_open and value == lo):
+            raise argparse.ArgumentTypeError(f"expected a finite number {bound}, got {text!r}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def input_file(*suffixes: str) -> Callable[[str], Path]:
+    """An argparse ``type`` for a file to read: it must exist, be a readable file and (if
+    ``suffixes`` are given) end in one of them."""
+
+    def parse(text: str) -> Path:
+        path = Path(text)
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(
+                f"expected a {' or '.join(suffixes)} file, got {text!r}"
+            )
+        if not path.exists():
+            raise argparse.ArgumentTypeError(f"no such file: {text}")
+        if not path.is_file():
+            raise argparse.ArgumentTypeError(f"{text} is not a file")
+        if not os.access(path, os.R_OK):
+            raise argparse.ArgumentTypeError(f"{text} is not readable")
+        return path
+
+    parse.__name__ = "file"
+    return parse
+
+
+def check_seed_room(seed: int, count: int, flag: str, value: int) -> None:
+    """Raise :class:`UsageError` naming ``--seed`` unless seeds ``seed .. seed + count`` fit
+    below :data:`MAX_SEED` (``count`` seeds are used with ``flag value``)."""
+    if seed + count > MAX_SEED:
+        raise UsageError(
+            f"argument --seed: expected at most {MAX_SEED - count} with {flag} {value}, got {seed}"
+        )
+
+
+# ------------------------------------------------------------- outputs: one overwrite rule
+class _DeprecatedOverwrite(argparse.Action):
+    def __call__(self, parser: Any, namespace: Any, values: Any, option: Any = None) -> None:
+        print(f"{parser.prog}: warning: --overwrite is deprecated; use --force", file=sys.stderr)
+        namespace.force = True
+
+
+def add_force_option(p: argparse.ArgumentParser, what: str = "output files") -> None:
+    """Add ``--force`` (overwrite existing outputs) and the hidden deprecated ``--overwrite``."""
+    p.add_argument("--force", action="store_true", help=f"overwrite existing {what}")
+    p.add_argument("--overwrite", nargs=0, action=_DeprecatedOverwrite, help=argparse.SUPPRESS)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output(
+    flag: str,
+    path: str | os.PathLike[str],
+    *,
+    force: bool,
+    suffixes: tuple[str, ...] | None = None,
+    inputs: Iterable[Path] = (),
+) -> Path:
+    """Check an output file before any work (see :func:`lgp_policy._io.check_output_path`).
+
+    Raises:
+        UsageError: ``argument FLAG: ...``: wrong suffix, exists without ``--force``, a folder,
+            not writable, or the same file as one of ``inputs``.
+    """
+    path = Path(path)
+    for source in inputs:
+        if _same_file(path, source) or path.absolute() == Path(source).absolute():
+            raise UsageError(f"argument {flag}: {path} is also an input; choose another name")
+    try:
+        return check_output_path(path, force=force, suffixes=suffixes, what="output")
+    except (ValueError, FileExistsError) as exc:
+        raise UsageError(f"argument {flag}: {exc}") from None
+
+
+def check_video_output(flag: str, path: str | os.PathLike[str], *, force: bool) -> Path:
+    """:func:`check_output` for a video, and for ``.mp4`` that its encoder is installed."""
+    path = check_output(flag, path, force=force, suffixes=VIDEO_SUFFIXES)
+    if path.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise UsageError(
+            f"argument {flag}: writing .mp4 needs the imageio-ffmpeg package "
+            "(pip install imageio-ffmpeg); or use a .gif name"
+        )
+    return path
+
+
+def check_output_folder(
+    flag: str, path: str | os.PathLike[str], *, force: bool, owned: Iterable[str]
+) -> list[Path]:
+    """Check an output folder before any work; return the files to remove first.
+
+    A new or empty folder is fine. A folder with files needs ``force``; then the files named in
+    ``owned`` (those the command writes) are returned for removal, other files are left alone,
+    so the folder never mixes the outputs of two runs.
+
+    Raises:
+        UsageError: ``path`` is a file, not writable, or a non-empty folder without ``force``.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"argument {flag}: {path} is a file; expected a folder")
+    if path.is_dir():
+        entries = sorted(p.name for p in path.iterdir())
+        if entries and not force:
+            shown = ", ".join(entries[:5]) + (", ..." if len(entries) > 5 else "")
+            raise UsageError(
+                f"argument {flag}: folder {path} is not empty ({shown}); pass --force to "
+                "replace the files this command writes there, or choose a new folder"
+            )
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise UsageError(f"argument {flag}: folder {path} is not writable")
+        return [path / name for name in owned if (path / name).is_file()]
+    try:  # a new folder: its nearest existing parent must be writable
+        check_output_path(path / "x", force=True, what="output folder")
+    except ValueError as exc:
+        raise UsageError(f"argument {flag}: {exc}") from None
+    return []
+
+
+# ----------------------------------------------------------------------- the one error path
+_INPUT_ERRORS = (ValueError, FileExistsError, FileNotFoundError, IsADirectoryError, PermissionError)
+
+
+def describe_error(exc: BaseException) -> tuple[int, str]:
+    """``(exit code, one-line message)`` for an exception that ended a command."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        text = f"{exc.filename}: {exc.strerror}"
+    else:
+        text = str(exc) or type(exc).__name__
+    text = " ".join(text.split())  # one line
+    if isinstance(exc, _INPUT_ERRORS):
+        return EXIT_USAGE, text
+    if isinstance(exc, MemoryError):
+        return EXIT_FAILURE, f"out of memory ({text})"
+    if isinstance(exc, (OSError, RuntimeError, ImportError)):
+        return EXIT_FAILURE, text
+    return EXIT_FAILURE, (
+        f"internal error: {type(exc).__name__}: {text} (rerun with --debug for the traceback "
+        "and please report it)"
+    )
+
+
+def run_command(func: Callable[[argparse.Namespace], int | None], args: argparse.Namespace) -> int:
+    """Run a subcommand; map any error to one line on stderr and an exit code."""
+    command = f"{PROG} {getattr(args, 'command', '')}".strip()
+    debug = bool(getattr(args, "debug", False))
+    try:
+        return int(func(args) or 0)
+    except KeyboardInterrupt:
+        if debug:
+            traceback.print_exc()
+        sys.stderr.write(
+            f"\n{command}: interrupted; finished files are kept, partial ones removed\n"
+        )
+        return EXIT_INTERRUPTED
+    except Exception as exc:
+        if debug:
+            traceback.print_exc()
+        code, text = describe_error(exc)
+        sys.stderr.write(f"{command}: error: {text}\n")
+        return code
