@@ -266,7 +266,8 @@ class CoffeeEnv(gym.Env, EzPickle):
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
     another process). By default (``exact_reset=True``) every reset rebuilds the world
-    (``resetSimulation`` and reload, ~80 ms, no memory growth), so every episode equals a fresh
+    (``resetSimulation`` and reload: ~20 ms, ~80 ms when rendering, which loads the visual meshes;
+    no memory growth), so every episode equals a fresh
     env's with the same seed, whatever ran before: evaluation results do not depend on how episodes
     are spread over workers. ``exact_reset=False`` keeps the bodies loaded and re-poses them (~1 ms,
     no memory growth), but Bullet's broadphase keeps some history (the order of its pair cache), so
@@ -396,7 +397,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
-        elif self.exact_reset:  # an empty world, loaded afresh: ~80 ms
+        elif self.exact_reset:  # an empty world, loaded afresh: ~20 ms (~80 ms with visual meshes)
             self.sim.reset_world()
             self._load()
         # Otherwise the bodies stay loaded (removing and reloading single bodies leaked memory in
