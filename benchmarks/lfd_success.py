@@ -33,8 +33,8 @@ part        cells                                                             ep
 targets     hard, none: ``gp`` n = 8 and ``objrel``, 3 draws                   30 / draw
             easy, none: ``gp`` n = 4, 5 draws                                  30 / draw
             easy, cup push and 5 mm noise: ``gp`` n = 4, 3 draws                30 / draw
-coverage    every level, none: every method, n = 1, 2, 4, 8, 3 draws            10 / draw
-            every level, every perturbation: every method at n = 4, 3 draws    10 / draw
+coverage    every level, every perturbation: every method at n = 4, 3 draws    10 / draw
+            every level, none: every method, n = 1, 2, 4, 8, 3 draws            10 / draw
 ==========  ================================================================  ===========
 
 Cells of the two parts that coincide are run once, with the larger number of episodes. Each
@@ -194,13 +194,14 @@ def plan(
         add("gp", "easy", "obs_noise_5mm", 4, range(3), t)
     if coverage:
         c = coverage_episodes
+        for level in level_names:  # every method and perturbation at n = 4 first
+            for pert in perturbations:
+                for m in methods:
+                    add(m, level, pert, 4, range(COVERAGE_DRAWS), c)
         for level in level_names:
             for n in N_DEMOS:
                 for m in methods:
                     add(m, level, "none", n, range(COVERAGE_DRAWS), c)
-            for pert in perturbations:
-                for m in methods:
-                    add(m, level, pert, 4, range(COVERAGE_DRAWS), c)
     return cells
 
 
@@ -555,6 +556,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--quick", action="store_true", help="smoke run: n = 2, 2 episodes per draw")
     ap.add_argument("--resume", action="store_true", help="skip cells already in results.json")
     ap.add_argument("--report", action="store_true", help="only rewrite results.md from the JSON")
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        nargs="*",
+        default=[],
+        help="with --report: also take the cells of these output directories (runs split over "
+        "processes or machines; a cell present twice keeps the one with more episodes)",
+    )
     ap.add_argument("--methods", default=",".join(MAIN_METHODS), help="comma-separated")
     ap.add_argument("--levels", default=None, help="comma-separated (default: every level)")
     ap.add_argument("--perturbations", default=",".join(PERTURBATIONS), help="comma-separated")
@@ -592,6 +601,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     old_meta = json.loads(saved.read_text()).get("meta", {}) if rows and saved.exists() else {}
     if args.report:
         meta = {**meta, **old_meta}
+        for other in args.merge:
+            for key, row in load_results(other).items():
+                if row.get("episodes", -1) > rows.get(key, {}).get("episodes", -1):
+                    rows[key] = row
         write_results(out, rows, meta)
         print((out / "results.md").read_text())
         return
@@ -616,11 +629,6 @@ def main(argv: Sequence[str] | None = None) -> None:
         f"({sum(todo.values())} episodes); writing {out}/results.json",
         flush=True,
     )
-    # Record every needed draw once, up front (the units read them from out/demos).
-    for level, draw in sorted({(u.level, u.draw) for u in work}):
-        t = time.perf_counter()
-        record_demos(out, level, known_levels[level], draw, max(N_DEMOS))
-        print(f"demonstrations {level} draw {draw}: {time.perf_counter() - t:.0f} s", flush=True)
 
     def done(unit: Unit, new_rows: list[dict[str, Any]]) -> None:
         for r in new_rows:

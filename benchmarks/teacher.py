@@ -79,7 +79,7 @@ def save_frames(env_id: str, demo: Demonstration, folder: Path) -> list[Path]:
         for t in range(demo.n_steps):
             if t in by_step:
                 path = folder / f"teacher_seed{demo.seed}_{by_step[t]}_t{t}.png"
-                iio.imwrite(path, env.render())
+                iio.imwrite(path, np.asarray(env.render()))
                 paths.append(path)
             if t < demo.n_steps - 1:
                 env.step(demo.actions[t])

@@ -141,6 +141,9 @@ def _make_files(tmp: Path, demos: Path, policy: Path) -> dict[str, Path]:
     put("d_failed.npz", {**d, "success": np.zeros_like(d["success"])})
     put("d_is_policy.npz", p)
     _raw_member(new("d_bomb.npz"), "junk.npy", b"\0" * (64 * 2**20), d)
+    put("d_zero_length.npz", {**d, "lengths": np.array([0, int(d["lengths"].sum())])})
+    put("d_stages_float.npz", {**d, "stages": d["stages"].astype(float)})
+    put("p_no_frames.npz", _with_meta(p, frame_names=[]))
     put("d_time_decreasing.npz", {**d, "time": d["time"][::-1].copy()})
 
     # GP policies
@@ -223,7 +226,7 @@ for value in ("0", "-3", "two", "1.5", ""):
     cli(
         f"record-n-{value or 'empty'}",
         f"record --n '{value}' --out {{tmp}}/d.npz",
-        "argument --n: expected an integer >= 1",
+        "argument --n: expected a number of demonstrations in [1, 10000]",
     )
 cli(
     "record-seed-negative", "record --seed -1 --out {tmp}/d.npz", "argument --seed: expected a seed"
@@ -401,6 +404,8 @@ call("demos-metadata-json", _demos_load("d_meta_json.npz"), "metadata")
 call("demos-metadata-list", _demos_load("d_meta_list.npz"), "metadata")
 call("demos-schema-version", _demos_load("d_meta_version.npz"), "version")
 call("demos-is-policy", _demos_load("d_is_policy.npz"), "{d_is_policy.npz}")
+call("demos-zero-length", _demos_load("d_zero_length.npz"), "lengths")
+call("demos-stages-float", _demos_load("d_stages_float.npz"), "stages", pending("data"))
 call("demos-time-decreasing", _demos_load("d_time_decreasing.npz"), "time")
 
 # --- GP policy files (GPDemonstrationPolicy.load) --------------------------------------------
@@ -421,6 +426,7 @@ call("policy-mean-nan", _gp_load("p_mean_nan.npz"), "NaN")
 call("policy-std-negative", _gp_load("p_std_neg.npz"), "std__joint")
 call("policy-missing-array", _gp_load("p_missing_array.npz"), "std__cup")
 call("policy-array-shape", _gp_load("p_shape.npz"), "cup")
+call("policy-no-frames", _gp_load("p_no_frames.npz"), "frame_names")
 call("policy-unknown-params", _gp_load("p_params.npz"), "no_such_parameter")
 call("policy-dt-zero", _gp_load("p_dt_zero.npz"), "control_dt")
 call("policy-dt-inf", _gp_load("p_dt_inf.npz"), "control_dt", pending("lfd"))
@@ -462,6 +468,7 @@ call(
     _predict(lambda n: np.zeros((3, n + 1))),
     "observation",
 )
+call("predict-obs-text", _predict(lambda n: np.array(["a"] * n)), "observation")
 call("predict-obs-3d", _predict(lambda n: np.zeros((2, 2, n))), "observation")
 call("predict-obs-nan", _predict(lambda n: np.full(n, np.nan)), "observation")
 call("predict-obs-inf", _predict(lambda n: np.full(n, np.inf)), "observation")
@@ -515,6 +522,19 @@ def _make(**kwargs: Any) -> Callable[[Ctx], Any]:
     return run
 
 
+call("env-action-text", _step(lambda: np.array(["a"] * 8)), "action")
+
+
+def _reset(options: Any) -> Callable[[Ctx], Any]:
+    def run(c: Ctx) -> Any:
+        return c.env.reset(seed=0, options=options)
+
+    return run
+
+
+call("env-reset-options", _reset({"layuot": {}}), "options")
+call("env-reset-layout-far", _reset({"layout": {"cup_pos": [10.0, 10.0]}}), "cup_pos")
+call("env-reset-layout-nan", _reset({"layout": {"machine_yaw": float("nan")}}), "machine_yaw")
 call("env-reward-type", _make(reward_type="shaped"), "reward_type")
 call("env-render-mode", _make(render_mode="window"), "render_mode")
 call("env-height-zero", _make(render_mode="rgb_array", height=0), "height")
@@ -588,6 +608,8 @@ call(
     "y",
     pending("gp"),
 )
+call("gp-y-nan", _gp("GaussianProcess", _x, lambda: np.full(20, np.nan)), "y")
+call("gp-x-3d", _gp("GaussianProcess", lambda: np.zeros((20, 1, 1)), lambda: np.ones(20)), "X")
 call("local-combine", _gp("LocalGP", _x, lambda: np.ones(20), combine="mean"), "combine")
 
 proc(
@@ -703,8 +725,24 @@ def _fill(text: str, ctx: Ctx) -> str:
     return re.sub(r"\{([^{}]+)\}", lambda m: str(paths[m.group(1)]), text)
 
 
+@pytest.fixture
+def no_long_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A row whose check is missing must fail fast, not start minutes of work."""
+    import gym_coffee.demonstrations
+    from lgp_policy.app import evaluation, pipeline
+
+    def started(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("work started: the bad input was not caught before")
+
+    monkeypatch.setattr(pipeline, "run_pipeline", started)
+    monkeypatch.setattr(evaluation, "evaluate_policy_stages", started)
+    monkeypatch.setattr(gym_coffee.demonstrations, "collect_demonstrations", started)
+
+
 @pytest.mark.parametrize(("argv", "fragment"), CLI)
-def test_cli_row(argv: str, fragment: str, ctx: Ctx, capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_row(
+    argv: str, fragment: str, ctx: Ctx, no_long_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
     import shlex
 
     args = [_fill(a, ctx) for a in shlex.split(argv)]

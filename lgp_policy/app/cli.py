@@ -16,13 +16,13 @@ from typing import TYPE_CHECKING, Any
 
 import gym_coffee
 from lgp_policy.app._common import (
-    MAX_SEED,
     ArgumentParser,
     UsageError,
     add_force_option,
     check_output,
+    check_seed_room,
     check_video_output,
-    positive_int,
+    demos_int,
     run_command,
     seed_int,
 )
@@ -60,7 +60,7 @@ def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentP
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--n", type=positive_int, default=4, help="number of demonstrations")
+    p.add_argument("--n", type=demos_int, default=4, help="number of demonstrations")
     p.add_argument("--out", type=Path, required=True, help="output .npz file")
     p.add_argument(
         "--seed",
@@ -84,10 +84,7 @@ def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentP
 def check_record(args: argparse.Namespace) -> None:
     """Every ``record`` argument, before any work."""
     check_env_id(args.env_id)
-    if args.seed + 100 * args.n > MAX_SEED:
-        raise UsageError(
-            f"argument --seed: expected at most {MAX_SEED - 100 * args.n} for --n {args.n}"
-        )
+    check_seed_room(args.seed, 100 * args.n, "--n", args.n)
     check_output("--out", args.out, force=args.force, suffixes=(".npz",))
     if args.video is not None:
         check_video_output("--video", args.video, force=args.force)

@@ -22,16 +22,16 @@ from typing import Any
 
 from lgp_policy._io import atomic_write_text
 from lgp_policy.app._common import (
-    MAX_SEED,
     UsageError,
     add_force_option,
     check_output,
     check_output_folder,
+    check_seed_room,
     check_video_output,
+    demos_int,
     finite_float,
     input_file,
     int_range,
-    positive_int,
     seed_int,
 )
 from lgp_policy.app.backends import add_backend_arguments
@@ -96,7 +96,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         default=Path("gym-coffee-run"),
         help="output folder (default ./gym-coffee-run)",
     )
-    p.add_argument("--demos", type=positive_int, default=4, help="demonstrations (default 4)")
+    p.add_argument("--demos", type=demos_int, default=4, help="demonstrations (default 4)")
     p.add_argument("--episodes", type=episodes_int, default=50, help="layouts (default 50)")
     p.add_argument("--seed", type=seed_int, default=0, help="seed of demonstrations and layouts")
     p.add_argument("--workers", type=workers_int, default=1, help="parallel envs for evaluation")
@@ -189,11 +189,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def _check_evaluate(args: argparse.Namespace) -> None:
-    if args.seed + EVAL_SEED_OFFSET + args.episodes > MAX_SEED:
-        raise UsageError(
-            f"argument --seed: expected at most {MAX_SEED - EVAL_SEED_OFFSET - args.episodes} "
-            f"with --episodes {args.episodes}"
-        )
+    check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
     outputs = {}
     if args.json is not None:
         outputs["--json"] = check_output(
@@ -241,11 +237,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from lgp_policy.app import pipeline
 
     stale = check_output_folder("--out", args.out, force=args.force, owned=pipeline.RUN_FILES)
-    if args.seed + EVAL_SEED_OFFSET + args.episodes > MAX_SEED:
-        most = MAX_SEED - EVAL_SEED_OFFSET - args.episodes
-        raise UsageError(
-            f"argument --seed: expected at most {most} with --episodes {args.episodes}"
-        )
+    check_seed_room(args.seed, 100 * args.demos, "--demos", args.demos)
+    check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
     kwargs = _policy_kwargs(args)
     for path in stale:  # --force: the earlier run's files go first, so no mix of two runs
         path.unlink(missing_ok=True)

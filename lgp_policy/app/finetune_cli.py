@@ -372,23 +372,28 @@ class FinetuneJob:
             }
 
 
-def _run_local(jobs: Sequence[FinetuneJob]) -> list[dict[str, bytes]]:
-    return [job() for job in jobs]
+def _call(job: FinetuneJob) -> dict[str, bytes]:
+    return job()
 
 
-def _run_ray(jobs: Sequence[FinetuneJob], address: str | None) -> list[dict[str, bytes]]:
-    """Each job as a Ray task (1 CPU); ``address=None`` starts or joins a local Ray.
-    (To be replaced by ``lgp_policy.app.backends`` when it lands.)"""
+def _map_jobs(
+    jobs: Sequence[FinetuneJob], backend: str, address: str | None
+) -> list[dict[str, bytes]]:
+    """The jobs' results, in order: here one after another, or as Ray tasks of 1 CPU each."""
+    from lgp_policy.app import backends
+
+    map_tasks = getattr(backends, "map_tasks", None)
+    if map_tasks is not None:
+        return list(map_tasks(_call, jobs, backend=backend, address=address))
+    # Until lgp_policy.app.backends.map_tasks is on main (branch eval has it): the same, inline.
+    if backend == "local":
+        return [job() for job in jobs]
     import ray
 
     if not ray.is_initialized():
         ray.init(address=address, include_dashboard=False, log_to_driver=False)
     task = ray.remote(num_cpus=1)(_call)
     return list(ray.get([task.remote(job) for job in jobs]))
-
-
-def _call(job: FinetuneJob) -> dict[str, bytes]:
-    return job()
 
 
 def run_jobs(
@@ -398,7 +403,7 @@ def run_jobs(
     ``learning_curve.json`` content."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    results = _run_local(jobs) if backend == "local" else _run_ray(jobs, address)
+    results = _map_jobs(jobs, backend, address)
     summaries: dict[int, dict[str, Any]] = {}
     for job, files in zip(jobs, results, strict=True):
         _replace_folder(out / f"seed{job.seed}", files)

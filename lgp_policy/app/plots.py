@@ -48,10 +48,18 @@ def _plt() -> Any:
     return plt
 
 
+def _save(fig: Any, path: str | Path) -> Path:
+    """Save a figure (PNG, 110 dpi) and close it."""
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
 def _stage_lines(ax: Any, policy: Any) -> None:
     phases = policy.constraints_.get("stage_phases", {}) if hasattr(policy, "constraints_") else {}
     for stage, s in phases.items():
-        if s is None:
+        if s is None or stage not in STAGE_LABELS:  # the task stages only (no gripper events)
             continue
         ax.axvline(s, color="k", ls=":", lw=0.8)
         ax.text(
@@ -131,10 +139,7 @@ def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0
         "Learned policies relative to the objects' initial poses (cf. Fig. 4)", fontsize=10
     )
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def trace_from_episode(policy: Any, episode: Any) -> dict[str, Any]:
@@ -259,10 +264,7 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     flags = ", ".join(f"{v} {'yes' if reached.get(k) else 'no'}" for k, v in STAGE_LABELS.items())
     fig.suptitle(f"Reproduction on a new layout (cf. Fig. 5): {flags}", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _pick_dimension(encoder: Any) -> tuple[str, int]:
@@ -355,10 +357,7 @@ def plot_heteroscedastic(
     ax.grid(alpha=0.3)
     fig.suptitle("Standard vs heteroscedastic GP on the demonstrations (cf. Fig. 1)", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_clustering(
@@ -412,10 +411,7 @@ def plot_clustering(
     ax.legend(fontsize=7, ncol=3, loc="upper left", markerscale=2)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def make_all(

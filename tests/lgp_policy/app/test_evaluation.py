@@ -57,6 +57,24 @@ class BatchOnlyPolicy(ScriptedPolicy):
         return a, state
 
 
+class MemoryPolicy(ScriptedPolicy):
+    """A policy with memory updated in place (like the GP policy's frame filter): its action
+    depends on the steps since ``episode_start``; the big array goes through Ray's object store
+    zero-copy (read-only)."""
+
+    def __init__(self):
+        self.memory = np.zeros(200_000)
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        if episode_start is not None and np.any(episode_start):
+            self.memory[:] = 0.0
+        self.memory[:2] += 1.0
+        a, _ = super().predict(observation, state, episode_start)
+        a = np.array(a)
+        a[..., 2] = 0.05 * np.sin(self.memory[0])
+        return a, state
+
+
 def test_run_episode_records_what_happened():
     env = gym.make(gym_coffee.ENV_ID, **SHORT)
     try:
@@ -99,6 +117,11 @@ def test_results_identical_however_the_episodes_are_split(tmp_path):
         other = evaluate_policy_stages(ScriptedPolicy(), n, seed=7, **kw, **split)
         assert other["episodes"] == serial["episodes"], split
         assert other["stages"] == serial["stages"]
+    # a policy with memory (reset by episode_start) gives its own episodes, in any split too
+    memory = evaluate_policy_stages(MemoryPolicy(), n, seed=7, **kw)
+    assert memory["episodes"] != serial["episodes"]
+    split = evaluate_policy_stages(MemoryPolicy(), n, seed=7, workers=2, chunk_size=3, **kw)
+    assert split["episodes"] == memory["episodes"]
     assert other["video"] == str(tmp_path / "first.gif")
     assert (tmp_path / "first.gif").stat().st_size > 0
     first = other["first_episode"]
