@@ -189,7 +189,9 @@ def check_output(
             raise UsageError(f"argument {flag}: {path} is also an input; choose another name")
     try:
         return check_output_path(path, force=force, suffixes=suffixes, what="output")
-    except (ValueError, FileExistsError) as exc:
+    except FileExistsError:
+        raise UsageError(f"argument {flag}: {path} exists; pass --force to overwrite it") from None
+    except ValueError as exc:
         raise UsageError(f"argument {flag}: {exc}") from None
 
 

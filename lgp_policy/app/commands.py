@@ -159,15 +159,8 @@ def _policy_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def load_policy(path: str | Path) -> Any:
     """Open a GP policy ``.npz`` or a residual policy file (dispatching on its ``kind``)."""
-    try:
-        from lgp_policy.residual import load_any_policy  # type: ignore[attr-defined]
-    except ImportError:
-        try:  # until the residual package exports it
-            from lgp_policy.residual.core import load_any_policy
-        except ImportError:  # no residual support in this install: GP policies only
-            from lgp_policy.lfd.policy import GPDemonstrationPolicy
+    from lgp_policy.residual import load_any_policy
 
-            return GPDemonstrationPolicy.load(path)
     return load_any_policy(path)
 
 
