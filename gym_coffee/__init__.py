@@ -15,18 +15,23 @@ __version__ = "0.1.0"
 
 #: The default environment id (the easy level). Every module refers to it through this name.
 ENV_ID = "gym_coffee/CoffeeTask-v0"
+#: Difficulty levels and their registered ids (``CoffeeEnv``'s ``level`` argument; see its
+#: docstring): the same task, the hard level with the machine on either side and wider regions.
+LEVELS: dict[str, str] = {"easy": ENV_ID, "hard": "gym_coffee/CoffeeTaskHard-v0"}
 #: Every registered id.
-ENV_IDS: list[str] = [ENV_ID]
+ENV_IDS: list[str] = list(LEVELS.values())
 #: The task's stages in order: the ``info`` flags an episode reaches one after the other.
 #: ``info["is_success"]`` is the whole task (pressed while the cup stands placed).
 STAGES: tuple[str, ...] = ("cup_grasped", "cup_placed", "button_pressed")
 
-if ENV_ID not in registry:
-    register(
-        id=ENV_ID,
-        entry_point="gym_coffee.env:CoffeeEnv",
-        max_episode_steps=400,
-    )
+for _level, _env_id in LEVELS.items():
+    if _env_id not in registry:
+        register(
+            id=_env_id,
+            entry_point="gym_coffee.env:CoffeeEnv",
+            max_episode_steps=400,  # gym_coffee.env.MAX_EPISODE_STEPS (not imported: no PyBullet)
+            kwargs={"level": _level},
+        )
 
 _LAZY = {
     "CoffeeEnv": "gym_coffee.env",
@@ -38,7 +43,7 @@ _LAZY = {
     "collect_demonstrations": "gym_coffee.demonstrations",
 }
 
-__all__ = ["ENV_ID", "ENV_IDS", "STAGES", "__version__", *_LAZY]
+__all__ = ["ENV_ID", "ENV_IDS", "LEVELS", "STAGES", "__version__", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -11,7 +12,8 @@ from gymnasium.utils import EzPickle
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from gym_coffee._checks import check_bool, check_choice, check_int, check_vector
+from gym_coffee import STAGES
+from gym_coffee._checks import check_bool, check_choice, check_int, check_real, check_vector
 from gym_coffee.kinematics import PandaKinematics
 from gym_coffee.robot import (
     ACTION_TYPES,
@@ -24,10 +26,14 @@ from gym_coffee.robot import (
 )
 from gym_coffee.scene import (
     BUTTON_PRESS_TRAVEL,
+    BUTTON_REST_TRAVEL,
     CUP_HEIGHT,
+    CUP_REST_ANGULAR_SPEED,
+    CUP_REST_SPEED,
     CUP_TIPPED_TILT,
     CUP_UPRIGHT_TILT,
-    PLACE_OFFSET,
+    LEVEL_SPECS,
+    MIN_CUP_MACHINE_DISTANCE,
     PLACE_TOLERANCE,
     TABLE_TOP_Z,
     TABLE_X,
@@ -61,6 +67,15 @@ MAX_EPISODE_STEPS = 400
 START_JOINT_NOISE = 0.05
 #: Largest rendered image side (pixels) accepted for ``width`` and ``height``.
 MAX_IMAGE_SIDE = 4096
+#: Largest accepted ``obs_noise`` and ``calibration_bias`` (m), ``actuation_noise`` (rad) and
+#: ``cup_push`` distance (m).
+MAX_PERTURBATION = 0.1
+#: ``cup_push``: the cup is moved at a step drawn uniformly from this range (0.4-1.4 s after the
+#: reset: during the approach, before a hand reaches it).
+CUP_PUSH_STEPS = (10, 35)
+#: Observed parts that carry the object-position perturbations (``obs_noise``; with
+#: ``calibration_bias``: each with its object's offset).
+PERTURBED_OBS = {"cup_pos": "cup", "cup_init_pos": "cup", "machine_pos": "machine"}
 
 # name, size, (low, high): observations are clipped to these bounds.
 _OBS_LAYOUT = [
@@ -120,6 +135,15 @@ def object_frames(obs: NDArray[Any]) -> dict[str, tuple[NDArray[np.float64], NDA
     }
 
 
+class _State(NamedTuple):
+    q: NDArray[np.float64]
+    qd: NDArray[np.float64]
+    gripper: float
+    cup_pos: NDArray[np.float64]
+    cup_quat: NDArray[np.float64]
+    travel: float
+
+
 class CoffeeEnv(gym.Env, EzPickle):
     """A Franka Panda makes coffee: grasp a cup, put it under the machine's spout, press the button.
 
@@ -175,9 +199,21 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     ## Starting State
     The Panda in a ready posture (gripper down, open) with uniform noise of +-0.05 rad per joint;
-    the cup upright in ``scene.CUP_REGION_*``; the machine in ``scene.MACHINE_REGION_*``, its yaw 90
-    degrees (front facing -y) +-15 degrees; all drawn from ``self.np_random``, so ``reset(seed=s)``
-    fixes the layout.
+    the cup upright and the machine where the level puts them (``scene.LEVEL_SPECS``), all drawn
+    from ``self.np_random``, so ``reset(seed=s)`` fixes the layout:
+
+    * ``"easy"`` (``gym_coffee.ENV_ID``): the cup in ``scene.CUP_REGION_*`` to the robot's right,
+      the machine in ``scene.MACHINE_REGION_*`` to its left, its yaw 90 degrees (front facing -y)
+      +-15 degrees.
+    * ``"hard"`` (``"gym_coffee/CoffeeTaskHard-v0"``): the machine on either side (50/50), yaw
+      +-90 degrees (front towards the middle) +-30 degrees, the cup on the other side in a wider
+      region (``scene.HARD_*``): the grasp, carry and press directions flip with the side.
+
+    ``reset(options={"layout": {...}})`` sets the layout instead: any of ``cup_pos`` and
+    ``machine_pos`` ((2,) or (3,) with z = 0, m, on the table) and ``machine_yaw`` (rad), the
+    others drawn as usual; it is checked (``ValueError`` naming the key). ``info["layout"]``
+    (reset and every step) is the episode's layout in the same form (tuples), so
+    ``reset(options={"layout": info["layout"]})`` replays it.
 
     ## Episode End
     Terminates on success (cup grasped, placed under the spout and the button pressed while it
@@ -186,10 +222,13 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     ## Info
     ``is_success``, ``cup_grasped`` (latched: the cup was lifted off the table between both
-    fingers), ``cup_placed`` (now: upright, not touched by the robot, base within
-    ``place_tolerance`` of the place under the spout, resting on the tray), ``button_pressed``
-    (latched: travel passed the threshold), ``stage`` (0: none, 1: grasped, 2: grasped and placed,
-    3: success), and the ``reward_<name>`` terms.
+    fingers), ``cup_placed`` (now: at rest upright on the tray, base within ``place_tolerance``
+    of the place under the spout, not touched by the robot: tilt < 5 degrees, speed < 0.01 m/s,
+    angular speed < 0.1 rad/s), ``button_pressed`` (latched: travel passed 5 mm while the grasp
+    point had moved along the button's axis since the button was last at rest, at least half
+    the threshold and more along the axis than across it: a sideways swipe does not count; the
+    button stops hard at 8 mm), ``stage`` (0: none, 1: grasped, 2: grasped and placed, 3:
+    success), ``layout`` (see Starting State) and the ``reward_<name>`` terms.
 
     ## Arguments
     ==================  ==========  ===========================================================
@@ -200,10 +239,29 @@ class CoffeeEnv(gym.Env, EzPickle):
     ``render_shadows``  ``False``   draw shadows in ``"rgb_array"`` frames (about 2x the time)
     ``exact_reset``     ``True``    rebuild the physics world at every reset (see below)
     ``action_type``     ``"joint"`` ``"joint"``, ``"ee"`` or ``"ee_rot"`` (see Action Space)
+    ``level``           ``"easy"``  difficulty level (the registered ids of ``gym_coffee.LEVELS``
+                                    set it; see Starting State)
+    ``obs_noise``       ``0.0``     std (m) of Gaussian noise added at every step to the
+                                    observed ``cup_pos``, ``cup_init_pos`` and ``machine_pos``
+    ``calibration_bias`` ``0.0``    length (m) of a constant offset per episode, in a random
+                                    3-D direction, of the observed cup positions (``cup_pos``,
+                                    ``cup_init_pos``) and, another one, of ``machine_pos``
+    ``actuation_noise`` ``0.0``     std (rad) of Gaussian noise added to every joint target
+    ``cup_push``        ``None``    ``(low, high)`` (m): the cup is moved on the table by a
+                                    distance in [low, high] in a random horizontal direction
+                                    (away from the machine), once, 10-35 steps after the reset
+                                    (during the approach), unless the robot touches it already
     ==================  ==========  ===========================================================
 
     Every argument is checked at construction (``ValueError`` naming it): ``width`` and
-    ``height`` are integers in [1, 4096].
+    ``height`` are integers in [1, 4096], the perturbations finite numbers in [0, 0.1].
+
+    ## Perturbations
+    All four are off by default, usable on every level, and drawn from ``self.np_random`` after
+    the layout and the start posture, so ``reset(seed=s)`` reproduces them (also in another
+    process) and the unperturbed episodes stay what they are. They perturb what the policy
+    observes or does, not the simulator's truth: ``task_points()`` and the stage checks use the
+    true poses.
 
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
@@ -222,14 +280,14 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     With ``gym.vector.AsyncVectorEnv(..., context="spawn")`` or ``"forkserver"`` (Python 3.14's
     default on Linux) the workers are fresh interpreters: make the env with
-    ``gym.make("gym_coffee:gym_coffee/CoffeeTask-v0")`` or ``import gym_coffee`` inside the env
+    ``gym.make("gym_coffee:" + gym_coffee.ENV_ID)`` or ``import gym_coffee`` inside the env
     function, so that the id is registered there.
 
     ## Version History
     * v0: first version.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {
+    metadata: dict[str, Any] = {  # noqa: RUF012  (Gymnasium's class attribute)
         "render_modes": ["human", "rgb_array"],
         "render_fps": round(1.0 / CONTROL_DT),
     }
@@ -244,6 +302,11 @@ class CoffeeEnv(gym.Env, EzPickle):
         render_shadows: bool = False,
         exact_reset: bool = True,
         action_type: str = "joint",
+        level: str = "easy",
+        obs_noise: float = 0.0,
+        calibration_bias: float = 0.0,
+        actuation_noise: float = 0.0,
+        cup_push: tuple[float, float] | None = None,
     ) -> None:
         EzPickle.__init__(
             self,
@@ -254,6 +317,11 @@ class CoffeeEnv(gym.Env, EzPickle):
             render_shadows=render_shadows,
             exact_reset=exact_reset,
             action_type=action_type,
+            level=level,
+            obs_noise=obs_noise,
+            calibration_bias=calibration_bias,
+            actuation_noise=actuation_noise,
+            cup_push=cup_push,
         )
         # Every argument is checked before the physics server starts.
         self.render_mode = check_choice(
@@ -265,6 +333,15 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.render_shadows = check_bool("render_shadows", render_shadows)
         self.exact_reset = check_bool("exact_reset", exact_reset)
         self.action_type = check_choice("action_type", action_type, list(ACTION_TYPES))
+        self.level = check_choice("level", level, list(LEVEL_SPECS))
+        self.obs_noise = check_real("obs_noise", obs_noise, 0.0, MAX_PERTURBATION, "m")
+        self.calibration_bias = check_real(
+            "calibration_bias", calibration_bias, 0.0, MAX_PERTURBATION, "m"
+        )
+        self.actuation_noise = check_real(
+            "actuation_noise", actuation_noise, 0.0, MAX_PERTURBATION, "rad"
+        )
+        self.cup_push = self._check_cup_push(cup_push)
 
         self.sim = Simulation(render_mode, timestep=PHYSICS_DT, n_substeps=N_SUBSTEPS)
         self.robot = Panda(self.sim)
@@ -284,6 +361,10 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._pressed_with_cup = False
         self._rest_posture = NEUTRAL_JOINTS.copy()
         self._hand_rotation = np.eye(3)  # commanded hand orientation (end-effector modes)
+        self._press_origin = np.zeros(3)  # grasp point when the button was last at rest
+        self._bias = {"cup": np.zeros(3), "machine": np.zeros(3)}
+        self._push: tuple[int, NDArray[np.float64]] | None = None  # (step, displacement)
+        self._layout_info: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ public API
     @property
@@ -302,8 +383,16 @@ class CoffeeEnv(gym.Env, EzPickle):
     ) -> tuple[NDArray[np.float32], dict[str, Any]]:
         super().reset(seed=seed)
         rng = self.np_random
-        layout = Layout.sample(rng)
+        layout = Layout.sample(rng, self.level)
         q0 = NEUTRAL_JOINTS + rng.uniform(-START_JOINT_NOISE, START_JOINT_NOISE, size=7)
+        if options is not None:  # checked before any work
+            if not isinstance(options, Mapping) or set(map(str, options)) - {"layout"}:
+                raise ValueError(
+                    f"options must be None or a dict {{'layout': ...}}, got {options!r}"
+                )
+            if "layout" in options:
+                layout = layout.replace(options["layout"])
+        self._draw_perturbations(rng, layout)
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
@@ -322,9 +411,12 @@ class CoffeeEnv(gym.Env, EzPickle):
         self._stage = 0
         self._pressed_with_cup = False
         self._rest_posture = q0.copy()
-        self._hand_rotation = self.kinematics.forward_pose(self.robot.joint_states()[0])[1]
-        obs = self._get_obs()
-        info = self._evaluate()[0]
+        q, _ = self.robot.joint_states()
+        self._press_origin, self._hand_rotation = self.kinematics.forward_pose(q)
+        self._layout_info = layout.as_dict()
+        state = self._read_state()
+        obs = self._get_obs(state)
+        info = self._evaluate(state)[0]
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -333,12 +425,16 @@ class CoffeeEnv(gym.Env, EzPickle):
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         q_target, opening = self._targets(self._check_action(action))
+        if self.actuation_noise > 0.0:
+            noise = self.np_random.normal(0.0, self.actuation_noise, 7)
+            q_target = np.clip(q_target + noise, self.robot.joint_lower, self.robot.joint_upper)
         self.robot.command(q_target, opening)
-        self.scene.apply_spring()
-        self.sim.step()
-        self._n_steps += 1
-        obs = self._get_obs()
-        info, failed = self._evaluate()
+        self._simulate()
+        if self._push is not None and self._n_steps == self._push[0]:
+            self._push_cup(self._push[1])
+        state = self._read_state()
+        obs = self._get_obs(state)
+        info, failed = self._evaluate(state)
         reward = float(sum(info[f"reward_{name}"] for name in REWARD_TERMS))
         terminated = bool(info["is_success"] or failed)
         if self.render_mode == "human":
@@ -363,6 +459,48 @@ class CoffeeEnv(gym.Env, EzPickle):
             self.sim.close()
 
     # ------------------------------------------------------------------ internals
+    @staticmethod
+    def _check_cup_push(cup_push: Any) -> tuple[float, float] | None:
+        if cup_push is None:
+            return None
+        expected = (
+            f"cup_push must be None or (low, high) with 0 <= low <= high <= {MAX_PERTURBATION} m"
+        )
+        try:
+            low, high = (float(v) for v in cup_push)
+        except (TypeError, ValueError):
+            raise ValueError(f"{expected}, got {cup_push!r}") from None
+        if not (np.isfinite([low, high]).all() and 0.0 <= low <= high <= MAX_PERTURBATION):
+            raise ValueError(f"{expected}, got {cup_push!r}")
+        return low, high
+
+    def _draw_perturbations(self, rng: np.random.Generator, layout: Layout) -> None:
+        """This episode's calibration offsets and cup push (no draws when they are off)."""
+        for name in ("cup", "machine"):
+            offset = np.zeros(3)
+            if self.calibration_bias > 0.0:
+                direction = rng.normal(size=3)
+                offset = self.calibration_bias * direction / np.linalg.norm(direction)
+            self._bias[name] = offset
+        self._push = None
+        if self.cup_push is not None:
+            step = int(rng.integers(CUP_PUSH_STEPS[0], CUP_PUSH_STEPS[1] + 1))
+            distance = float(rng.uniform(*self.cup_push))
+            angle = float(rng.uniform(0.0, 2.0 * np.pi))
+            displacement = distance * np.array([np.cos(angle), np.sin(angle), 0.0])
+            # Away from the machine where the drawn direction would bring the cup close to it.
+            pushed = layout.cup_pos + displacement
+            if np.linalg.norm(pushed[:2] - layout.machine_pos[:2]) < MIN_CUP_MACHINE_DISTANCE:
+                displacement = -displacement
+            self._push = (step, displacement)
+
+    def _push_cup(self, displacement: NDArray[np.float64]) -> None:
+        """Move the standing cup by ``displacement`` (at rest), unless the robot touches it."""
+        if self._grasped or self.scene.robot_touches_cup():
+            return
+        pos, quat = self.scene.cup_pose()
+        self.sim.set_base_pose("cup", pos + displacement, quat)
+
     def _check_action(self, action: Any) -> NDArray[np.float64]:
         """The action as float64, clipped to [-1, 1]; ValueError for a wrong shape or NaN/inf."""
         size = ACTION_TYPES[self.action_type]
@@ -395,49 +533,77 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.scene.load()
         self.robot.reset(NEUTRAL_JOINTS)
 
-    def _get_obs(self) -> NDArray[np.float32]:
+    def _simulate(self) -> None:
+        """One control step of physics with the robot's commands set: the button's spring, its
+        hard stop (checked after every physics step, 2 us each), the clock."""
+        self.scene.apply_spring()
+        self.sim.step(self.scene.enforce_stop)
+        self._n_steps += 1
+
+    def _read_state(self) -> _State:
+        """The simulator's state that observation and evaluation need, read once per step."""
         q, qd = self.robot.joint_states()
         cup_pos, cup_quat = self.scene.cup_pose()
+        return _State(
+            q, qd, self.robot.gripper_opening(), cup_pos, cup_quat, self.scene.button_travel()
+        )
+
+    def _get_obs(self, state: _State | None = None) -> NDArray[np.float32]:
+        state = self._read_state() if state is None else state
+        q, cup_pos = state.q, state.cup_pos
         layout = self.scene.layout
+        observed = {
+            "cup_pos": cup_pos + self._bias["cup"],
+            "cup_init_pos": self._cup_init_pos + self._bias["cup"],
+            "machine_pos": layout.machine_pos + self._bias["machine"],
+        }
+        if self.obs_noise > 0.0:
+            for name in PERTURBED_OBS:
+                observed[name] = observed[name] + self.np_random.normal(0.0, self.obs_noise, 3)
         obs = np.concatenate(
             [
                 [self._n_steps * CONTROL_DT],
                 q,
-                qd,
-                [self.robot.gripper_opening()],
+                state.qd,
+                [state.gripper],
                 self.kinematics.forward_kinematics(q),
-                cup_pos,
-                cup_quat,
-                self._cup_init_pos,
-                layout.machine_pos,
+                observed["cup_pos"],
+                state.cup_quat,
+                observed["cup_init_pos"],
+                observed["machine_pos"],
                 [layout.machine_yaw],
-                [self.scene.button_travel()],
+                [state.travel],
             ]
         )
         return np.clip(obs, OBS_LOW, OBS_HIGH).astype(np.float32)
 
-    def _evaluate(self) -> tuple[dict[str, Any], bool]:
+    def _evaluate(self, state: _State | None = None) -> tuple[dict[str, Any], bool]:
         """Stage flags, reward terms and whether the episode failed, from the simulator's state."""
         scene = self.scene
-        cup_pos, cup_quat = scene.cup_pose()
-        tilt = scene.cup_tilt(cup_quat)
-        left, right = scene.finger_contacts()
+        state = self._read_state() if state is None else state
+        cup_pos = state.cup_pos
+        tilt = scene.cup_tilt(state.cup_quat)
+        left, right, touched = scene.robot_cup_contacts()
         held = left and right
         # Grasped (latched): the cup is off the table between both fingers.
         if held and not scene.cup_on_table() and cup_pos[2] > TABLE_TOP_Z + 0.005:
             self._grasped = True
-        place_pos = scene.machine_point(PLACE_OFFSET)
+        place_pos = scene.place_pos
         offset = cup_pos - place_pos
-        cup_lin_vel, _ = self.sim.get_base_velocity("cup")
+        cup_lin_vel, cup_ang_vel = self.sim.get_base_velocity("cup")
         placed = bool(
             tilt < CUP_UPRIGHT_TILT
             and np.hypot(offset[0], offset[1]) < PLACE_TOLERANCE
             and abs(offset[2]) < 0.01
-            and not scene.robot_touches_cup()
-            and np.linalg.norm(cup_lin_vel) < 0.1
+            and np.linalg.norm(cup_lin_vel) < CUP_REST_SPEED
+            and np.linalg.norm(cup_ang_vel) < CUP_REST_ANGULAR_SPEED
+            and not touched
         )
-        travel = scene.button_travel()
-        if travel >= BUTTON_PRESS_TRAVEL:
+        ee = self.kinematics.forward_kinematics(state.q)
+        travel = state.travel
+        if travel < BUTTON_REST_TRAVEL:
+            self._press_origin = ee
+        elif travel >= BUTTON_PRESS_TRAVEL and self._pushed_along_axis(ee):
             self._pressed = True
             if placed:
                 self._pressed_with_cup = True
@@ -453,15 +619,13 @@ class CoffeeEnv(gym.Env, EzPickle):
         previous_stage, self._stage = self._stage, stage
         terms = dict.fromkeys(REWARD_TERMS, 0.0)
         if self.reward_type == "dense":
-            q, _ = self.robot.joint_states()
-            ee = self.kinematics.forward_kinematics(q)
             cup_middle = cup_pos + np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
             if not self._grasped:
                 terms["reach"] = -float(np.linalg.norm(ee - cup_middle))
             elif not placed:
                 terms["carry"] = -float(np.linalg.norm(offset))
             else:
-                button = scene.task_points()["button_pos"]
+                button = scene.button_pos
                 terms["press"] = -float(np.linalg.norm(ee - button)) + min(
                     travel / BUTTON_PRESS_TRAVEL, 1.0
                 )
@@ -474,10 +638,18 @@ class CoffeeEnv(gym.Env, EzPickle):
             terms["success"] = 1.0 if success else 0.0
         info: dict[str, Any] = {
             "is_success": success,
-            "cup_grasped": bool(self._grasped),
-            "cup_placed": placed,
-            "button_pressed": bool(self._pressed),
+            **dict(zip(STAGES, (bool(self._grasped), placed, bool(self._pressed)), strict=True)),
             "stage": int(stage),
+            "layout": dict(self._layout_info),
         }
         info.update({f"reward_{name}": float(value) for name, value in terms.items()})
         return info, failed
+
+    def _pushed_along_axis(self, ee: NDArray[np.float64]) -> bool:
+        """Whether the grasp point moved along the button's axis since the button was at rest:
+        at least half the press threshold, and more along the axis than across it."""
+        axis = self.scene.machine_rotation[:, 0]
+        moved = ee - self._press_origin
+        along = float(moved @ axis)
+        across = float(np.linalg.norm(moved - along * axis))
+        return along >= 0.5 * BUTTON_PRESS_TRAVEL and across <= along

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from gym_coffee.env import CONTROL_DT, obs_part
 from gym_coffee.kinematics import PandaKinematics
@@ -32,8 +33,14 @@ __all__ = ["ScriptedTeacher"]
 GRASP_HEIGHT = 0.046
 #: The fingertips reach this far (m) beyond the grasp point along the hand's z axis.
 FINGERTIP_OFFSET = 0.0072
-#: Comfortable posture for a horizontal gripper (null-space target).
+#: Comfortable posture for a horizontal gripper (null-space target), machine on the robot's left.
 REST_POSTURE = np.array([-0.2, 0.9, 0.0, -1.9, 1.4, 1.5, 1.2])
+#: Its mirror image in the robot's xz-plane, for a machine on the right (hard level): joints 1, 3,
+#: 5 and 7 turn about axes in that plane (negated), 2, 4 and 6 about its normal (kept); the hand
+#: sits at -45 degrees on the flange, hence the quarter turn of joint 7.
+REST_POSTURE_MIRRORED = REST_POSTURE * np.array([-1, 1, -1, 1, -1, 1, -1]) + np.array(
+    [0, 0, 0, 0, 0, 0, np.pi / 2]
+)
 #: Damping (m) of the damped-least-squares inverse kinematics.
 IK_DAMPING = 0.03
 #: Weight of orientation (rad) against position (m) errors.
@@ -57,30 +64,6 @@ def _hand_rotation(direction: NDArray[np.float64], flip: bool) -> NDArray[np.flo
     return np.column_stack([x, y, z])
 
 
-def _rotvec(rot: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vector of a rotation matrix."""
-    cos = np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos)
-    axis = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * axis
-    if np.pi - angle < 1e-6:  # 180 degrees: axis from the symmetric part
-        sym = (rot + np.eye(3)) / 2.0
-        k = int(np.argmax(np.diag(sym)))
-        v = sym[:, k] / np.sqrt(max(sym[k, k], 1e-12))
-        return angle * v
-    return angle / (2.0 * np.sin(angle)) * axis
-
-
-def _rotmat(rotvec: NDArray[np.float64]) -> NDArray[np.float64]:
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = rotvec / angle
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * (kx @ kx)
-
-
 @dataclass
 class Segment:
     """One minimum-jerk move of the grasp point (with an arc ``via``) and the hand orientation."""
@@ -97,12 +80,12 @@ class Segment:
     name: str = ""
 
     def __post_init__(self) -> None:
-        self._rotvec = _rotvec(self.r0.T @ self.r1)
+        self._rotvec = Rotation.from_matrix(self.r0.T @ self.r1).as_rotvec()
 
     def at(self, t: float) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
         s = _min_jerk((t - self.t0) / max(self.t1 - self.t0, 1e-9))
         pos = self.p0 + s * (self.p1 - self.p0) + 4.0 * s * (1.0 - s) * self.via
-        rot = self.r0 @ _rotmat(s * self._rotvec)
+        rot = self.r0 @ Rotation.from_rotvec(s * self._rotvec).as_matrix()
         grip = self.grip0 + s * (self.grip1 - self.grip0)
         return pos, rot, grip
 
@@ -125,7 +108,7 @@ class ScriptedTeacher:
 
     Example:
         >>> import gymnasium as gym, gym_coffee
-        >>> env = gym.make("gym_coffee/CoffeeTask-v0")
+        >>> env = gym.make(gym_coffee.ENV_ID)
         >>> import numpy as np
         >>> teacher = ScriptedTeacher(env, rng=np.random.default_rng([1, 0]))
         >>> obs, info = env.reset(seed=0)
@@ -144,6 +127,7 @@ class ScriptedTeacher:
         self.variation = float(variation)
         self.kinematics: PandaKinematics = env.unwrapped.kinematics
         self.segments: list[Segment] = []
+        self._rest = REST_POSTURE
         self._last_time = np.inf
         self._plan_obs = np.zeros(0)
         self._jitter: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None
@@ -220,9 +204,11 @@ class ScriptedTeacher:
 
         # Grasp from the side, the hand pointing roughly across the line from the robot base to the
         # cup (the Panda's wrist handles a horizontal gripper best that way) and towards the
-        # machine.
+        # machine: turned left when the machine stands to the cup's left, else right.
+        machine_side = 1.0 if cup[0] * place[1] - cup[1] * place[0] >= 0.0 else -1.0
+        self._rest = REST_POSTURE if machine_side > 0 else REST_POSTURE_MIRRORED
         radial = np.arctan2(cup[1], cup[0])
-        grasp_yaw = radial + np.pi / 2 + u(np.deg2rad(10.0))
+        grasp_yaw = radial + machine_side * np.pi / 2 + u(np.deg2rad(10.0))
         d_grasp = np.array([np.cos(grasp_yaw), np.sin(grasp_yaw), 0.0])
         flip = False  # hand x down: the posture family of REST_POSTURE
         r_grasp = _hand_rotation(d_grasp, flip)
@@ -289,7 +275,7 @@ class ScriptedTeacher:
             q,
             pos_d,
             rot_d,
-            REST_POSTURE,
+            self._rest,
             max_step=MAX_JOINT_STEP,
             damping=IK_DAMPING,
             orientation_weight=ORIENTATION_WEIGHT,

@@ -1,44 +1,52 @@
-"""Seeded evaluation of a policy on held-out coffee-task layouts, per stage, with Wilson intervals.
+"""Seeded evaluation of a policy on held-out layouts, per stage, with Wilson intervals.
 
 Layouts come from ``reset(seed=EVAL_SEED_OFFSET + seed + i)``, ``i = 0..n_episodes-1``;
 demonstrations use ``seed, seed + 1, ...`` below the offset, so the two never share a layout
 (``docs/CONTRACTS.md``). An episode counts a stage as reached if its ``info`` flag was true at any
-step (``cup_grasped``, ``cup_placed``, ``button_pressed``, ``is_success``).
+step (:data:`EVAL_FLAGS`: ``gym_coffee.STAGES`` and ``is_success``).
 
-With ``workers > 1`` the episodes run in a Gymnasium ``AsyncVectorEnv`` (one process per worker)
-with autoreset disabled: a finished sub-environment is reset with the next seed through
-``reset_mask``, so each episode's layout is exactly the one of its seed, whatever the worker count.
-The policy runs in the calling process and gets the batch of observations.
+Every episode runs through the one loop, :func:`lgp_policy.rollout.run_episode`, wherever it runs
+(:mod:`lgp_policy.app.backends`: this process, a process pool, or Ray tasks); an episode depends
+on its seed alone, so the results are identical however the episodes are split. The first layout
+can be kept (its observations, and its rendered frames for a video) from the evaluation roll-out
+itself, so a ``gym-coffee run`` rolls each layout out once.
 """
 
 from __future__ import annotations
 
-import math
 import time as _time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+import gym_coffee
+from lgp_policy.app.backends import EnvFactory, check_backend, one_thread, start_episodes
+from lgp_policy.rollout import Episode, run_episode
+
 __all__ = [
-    "DEFAULT_ENV_ID",
+    "EVAL_FLAGS",
     "EVAL_SEED_OFFSET",
-    "STAGES",
+    "VIDEO_EVERY",
     "evaluate_policy_stages",
     "format_results",
+    "summarize",
     "wilson_interval",
+    "write_episode_video",
 ]
 
 EVAL_SEED_OFFSET = 10_000
 """Evaluation layouts use seeds ``EVAL_SEED_OFFSET + seed + i`` (disjoint from demonstrations)."""
-DEFAULT_ENV_ID = "gym_coffee/CoffeeTask-v0"
-STAGES = ("cup_grasped", "cup_placed", "button_pressed", "is_success")
+EVAL_FLAGS: tuple[str, ...] = (*gym_coffee.STAGES, "is_success")
 """Per-episode flags, in task order; an episode reached a stage if the flag was ever true."""
+VIDEO_EVERY = 3
+"""A video keeps every third control step (rendering costs far more than a step); it still plays
+in real time."""
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion.
+    """Wilson score interval for a binomial proportion (``scipy.stats.binomtest``).
 
     Args:
         successes: number of successes ``k``.
@@ -52,174 +60,25 @@ def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[f
         return 0.0, 1.0
     if not 0 <= successes <= n:
         raise ValueError(f"successes must be in [0, {n}], got {successes}")
-    from scipy.stats import norm
+    from scipy.stats import binomtest
 
-    z = float(norm.ppf(0.5 + confidence / 2.0))
-    p = successes / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    lo = 0.0 if successes == 0 else max(0.0, centre - half)  # exact at the ends (no round-off)
-    hi = 1.0 if successes == n else min(1.0, centre + half)
-    return lo, hi
+    ci = binomtest(int(successes), int(n)).proportion_ci(confidence, method="wilson")
+    return float(ci.low), float(ci.high)
 
 
-def _make_env(env_id: str, env_kwargs: Mapping[str, Any] | None, render: bool = False) -> Any:
-    import gymnasium as gym
-
-    import gym_coffee  # noqa: F401  (registers the env ids)
-
-    kwargs = dict(env_kwargs or {})
-    if render:
-        kwargs["render_mode"] = "rgb_array"
-    return gym.make(env_id, **kwargs)
-
-
-class _EnvFactory:
-    """Picklable env constructor for ``AsyncVectorEnv`` workers."""
-
-    def __init__(self, env_id: str, env_kwargs: Mapping[str, Any] | None) -> None:
-        self.env_id = env_id
-        self.env_kwargs = dict(env_kwargs or {})
-
-    def __call__(self) -> Any:
-        return _make_env(self.env_id, self.env_kwargs)
-
-
-def _run_episode(policy, env, seed: int, on_step=None) -> dict[str, Any]:
-    """One deterministic episode on ``reset(seed=seed)``: its length and the stages it reached.
-
-    ``on_step(length)`` is called after the reset (length 0) and after every control step (the
-    video recorder renders there).
-    """
-    obs, info = env.reset(seed=int(seed))
-    reached = {k: bool(info.get(k, False)) for k in STAGES}
-    length, done = 0, False
-    if on_step is not None:
-        on_step(length)
-    while not done:
-        action, _ = policy.predict(obs, deterministic=True)
-        obs, _r, terminated, truncated, info = env.step(action)
-        length += 1
-        for k in STAGES:
-            reached[k] |= bool(info.get(k, False))
-        if on_step is not None:
-            on_step(length)
-        done = bool(terminated or truncated)
-    return {"seed": int(seed), "length": length, **reached}
-
-
-def _run_serial(policy, env, seeds, bar) -> list[dict[str, Any]]:
-    episodes = []
-    for seed in seeds:
-        episodes.append(_run_episode(policy, env, seed))
-        if bar is not None:
-            bar.update(1)
-    return episodes
-
-
-def _run_vector(policy, env_id, env_kwargs, seeds, workers, bar) -> list[dict[str, Any]]:
-    from gymnasium.vector import AsyncVectorEnv, AutoresetMode
-
-    n_envs = min(workers, len(seeds))
-    envs = AsyncVectorEnv(
-        [_EnvFactory(env_id, env_kwargs) for _ in range(n_envs)],
-        autoreset_mode=AutoresetMode.DISABLED,
-    )
-    episodes: list[dict[str, Any]] = []
-    try:
-        next_i = n_envs
-        current = list(range(n_envs))  # index into seeds, or -1 when idle
-        obs, infos = envs.reset(seed=[int(seeds[i]) for i in current])
-        reached = [{k: bool(_info_at(infos, k, j)) for k in STAGES} for j in range(n_envs)]
-        lengths = [0] * n_envs
-        while any(c >= 0 for c in current):
-            actions, _ = policy.predict(obs, deterministic=True)
-            obs, _r, terminated, truncated, infos = envs.step(actions)
-            done = np.logical_or(terminated, truncated)
-            mask = np.zeros(n_envs, dtype=bool)
-            new_seeds: list[int | None] = [None] * n_envs
-            for j in range(n_envs):
-                if current[j] < 0:
-                    continue
-                lengths[j] += 1
-                for k in STAGES:
-                    reached[j][k] |= bool(_info_at(infos, k, j))
-                if done[j]:
-                    episodes.append(
-                        {"seed": int(seeds[current[j]]), "length": lengths[j], **reached[j]}
-                    )
-                    if bar is not None:
-                        bar.update(1)
-                    if next_i < len(seeds):
-                        current[j] = next_i
-                        next_i += 1
-                        mask[j] = True
-                        new_seeds[j] = int(seeds[current[j]])
-                    else:
-                        current[j] = -1
-            if mask.any():
-                obs_new, infos_new = envs.reset(seed=new_seeds, options={"reset_mask": mask})
-                obs = np.where(mask[:, None], obs_new, obs)
-                for j in np.flatnonzero(mask):
-                    reached[j] = {k: bool(_info_at(infos_new, k, j)) for k in STAGES}
-                    lengths[j] = 0
-    finally:
-        envs.close()
-    order = {int(s): i for i, s in enumerate(seeds)}
-    return sorted(episodes, key=lambda e: order[e["seed"]])
-
-
-def _info_at(infos: Mapping[str, Any], key: str, j: int) -> bool:
-    if key not in infos:
-        return False
-    present = infos.get(f"_{key}")
-    if present is not None and not present[j]:
-        return False
-    return bool(infos[key][j])
-
-
-def record_rollout(
-    policy: Any,
-    path: str | Path,
-    seed: int,
-    *,
-    env_id: str = DEFAULT_ENV_ID,
-    env_kwargs: Mapping[str, Any] | None = None,
-    fps: float | None = None,
-    every: int = 3,
-) -> dict[str, Any]:
-    """Roll out ``policy`` on the layout of ``reset(seed=seed)`` and write a video (.mp4 or .gif).
-
-    Args:
-        every: keep every ``every``-th control step as a frame (rendering costs ~0.17 s a
-            frame with PyBullet's TinyRenderer; the video still plays in real time).
-
-    Returns:
-        The episode's record (stages reached, length) plus ``"video"``: the path written.
-    """
+def write_episode_video(
+    episode: Episode, path: str | Path, *, force: bool = False, fps: float | None = None
+) -> Path:
+    """Write the frames of an episode rolled out with ``render=True`` (every
+    :data:`VIDEO_EVERY` steps) to an ``.mp4``/``.gif`` (atomically; an existing file only with
+    ``force``), holding the last frame a moment."""
+    from gym_coffee.env import CONTROL_DT
     from gym_coffee.video import write_video
 
-    env = _make_env(env_id, env_kwargs, render=True)
-    try:
-        frames: list[Any] = []
-
-        def grab(length: int) -> None:
-            if length == 0 or length % every == 0:
-                frames.append(env.render())
-
-        record = _run_episode(policy, env, seed, on_step=grab)
-        frames.append(env.render())
-        for _ in range(5):  # hold the last frame a moment
-            frames.append(frames[-1])
-        if fps is None:
-            from gym_coffee.env import CONTROL_DT
-
-            fps = 1.0 / (every * CONTROL_DT)
-        written = write_video(path, frames, fps=fps)
-    finally:
-        env.close()
-    return {**record, "video": str(written)}
+    if not episode.frames:
+        raise ValueError("the episode has no frames (roll it out with render=True)")
+    frames = [*episode.frames, *[episode.frames[-1]] * 5]
+    return write_video(path, frames, fps=fps or 1.0 / (VIDEO_EVERY * CONTROL_DT), overwrite=force)
 
 
 def evaluate_policy_stages(
@@ -230,64 +89,143 @@ def evaluate_policy_stages(
     video: str | Path | None = None,
     progress: bool = True,
     *,
-    env_id: str = DEFAULT_ENV_ID,
+    env_id: str = gym_coffee.ENV_ID,
     env_kwargs: Mapping[str, Any] | None = None,
+    env_factory: Callable[..., Any] | None = None,
+    backend: str = "local",
+    address: str | None = None,
+    chunk_size: int | None = None,
     confidence: float = 0.95,
+    keep_first: bool = False,
+    render_first: bool = False,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Run ``policy`` on ``n_episodes`` held-out layouts and report per-stage success.
 
     Args:
-        policy: anything with SB3's ``predict(observation, state, episode_start, deterministic)``
-            accepting ``(OBS_DIM,)`` and, for ``workers > 1``, ``(n, OBS_DIM)``.
+        policy: anything with SB3's ``predict(observation, state, episode_start, deterministic)``.
         n_episodes: number of layouts.
         seed: layouts use ``EVAL_SEED_OFFSET + seed + i``.
-        workers: parallel environments (``AsyncVectorEnv`` subprocesses) when ``> 1``.
-        video: if given, also record the first evaluation layout to this ``.mp4``/``.gif``.
+        workers: worker processes (``backend="local"``), or the CPUs of the local Ray instance
+            started for ``backend="ray"`` without an ``address``.
+        video: if given, write the first layout's roll-out (rendered during the evaluation
+            itself) to this ``.mp4``/``.gif``.
         progress: show a tqdm progress bar.
-        env_id, env_kwargs: the environment.
+        env_id: a registered env id (default ``gym_coffee.ENV_ID``) or a level name of
+            ``gym_coffee.LEVELS``.
+        env_kwargs: its constructor keywords (``obs_noise``, ``calibration_bias``,
+            ``cup_push``, ``action_type``, ...).
+        env_factory: instead of ``env_id``/``env_kwargs``, any callable returning an env; it
+            must accept ``render_mode="rgb_array"`` for a video and be picklable for
+            ``workers > 1`` or Ray.
+        backend: ``"local"`` or ``"ray"`` (see :mod:`lgp_policy.app.backends`).
+        address: Ray cluster address (``None``: a local Ray instance).
+        chunk_size: episodes per worker job / Ray task (default: about 4 chunks per worker).
         confidence: level of the Wilson intervals.
+        keep_first: return the first layout's :class:`~lgp_policy.rollout.Episode` (with its
+            observations) as ``result["first_episode"]`` (not JSON; pop it before saving).
+        render_first: also keep its rendered frames (implied by ``video``).
+        force: replace an existing ``video`` file (checked before any work).
 
     Returns:
-        ``{"n_episodes", "seed", "seeds", "workers", "stages": {stage: {"successes", "rate",
-        "ci_low", "ci_high"}}, "episode_length": {"mean", "std", "min", "max"},
-        "episodes": [...], "wall_time_s", "video"}``.
+        ``{"n_episodes", "seed", "seeds", "workers", "backend", "confidence", "stages": {stage:
+        {"successes", "rate", "ci_low", "ci_high"}}, "episode_length": {"mean", "std", "min",
+        "max"}, "episodes": [{"seed", "length", "return", stage flags}], "wall_time_s",
+        "video"}``.
     """
-    if n_episodes < 1:
-        raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    seeds = [EVAL_SEED_OFFSET + int(seed) + i for i in range(int(n_episodes))]
+    if isinstance(n_episodes, bool) or not isinstance(n_episodes, int) or n_episodes < 1:
+        raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}")
+    check_backend(backend, workers, chunk_size)
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence!r}")
+    if video is not None:
+        from gym_coffee.video import check_video_path
+
+        video = check_video_path(video)
+        if video.exists() and not force:
+            raise FileExistsError(f"{video} exists; pass force=True (--force) to replace it")
+    factory = env_factory if env_factory is not None else EnvFactory(env_id, env_kwargs or {})
+    seeds = [EVAL_SEED_OFFSET + int(seed) + i for i in range(n_episodes)]
+    render = render_first or video is not None
+    own_first = keep_first or render  # the first layout runs here, with its trace/frames
+
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(seeds), desc="evaluating", unit="episode")
     start = _time.perf_counter()
+    first: Episode | None = None
+    worker_cpu_first = 0.0
     try:
-        if workers > 1 and len(seeds) > 1:
-            episodes = _run_vector(policy, env_id, env_kwargs, seeds, workers, bar)
-        else:
-            env = _make_env(env_id, env_kwargs)
-            try:
-                episodes = _run_serial(policy, env, seeds, bar)
-            finally:
-                env.close()
+        job = start_episodes(
+            policy,
+            factory,
+            seeds[1:] if own_first else seeds,
+            flags=EVAL_FLAGS,
+            workers=workers,
+            backend=backend,
+            address=address,
+            chunk_size=chunk_size,
+            on_done=None if bar is None else bar.update,
+        )
+        if own_first:  # while the workers run the others
+            cpu = _time.process_time()
+            first = _first_episode(policy, factory, seeds[0], render)
+            worker_cpu_first = _time.process_time() - cpu
+            if bar is not None:
+                bar.update(1)
+        episodes = job.collect()
+        worker_cpu = dict(job.worker_cpu_s)
     finally:
         if bar is not None:
             bar.close()
+    if first is not None:
+        episodes.insert(0, first.record(EVAL_FLAGS))
     wall = _time.perf_counter() - start
+    result = summarize(episodes, confidence)
+    result.update(
+        seed=int(seed), seeds=seeds, workers=int(workers), backend=backend, wall_time_s=wall
+    )
+    result["worker_cpu_s"] = worker_cpu
+    result["first_episode_cpu_s"] = worker_cpu_first
+    result["video"] = None
+    if video is not None and first is not None:
+        result["video"] = str(write_episode_video(first, video, force=force))
+    if keep_first:
+        result["first_episode"] = first
+    return result
+
+
+def _first_episode(policy: Any, factory: Callable[..., Any], seed: int, render: bool) -> Episode:
+    env = factory(render_mode="rgb_array") if render else factory()
+    try:
+        with one_thread():
+            return run_episode(
+                policy,
+                env,
+                seed,
+                flags=EVAL_FLAGS,
+                render=render,
+                render_every=VIDEO_EVERY,
+                keep_observations=True,
+            )
+    finally:
+        env.close()
+
+
+def summarize(episodes: list[dict[str, Any]], confidence: float = 0.95) -> dict[str, Any]:
+    """Per-stage success with Wilson intervals and episode-length statistics of episode
+    records (``{"seed", "length", flag: bool, ...}``)."""
     n = len(episodes)
     stages = {}
-    for k in STAGES:
+    for k in EVAL_FLAGS:
         k_succ = sum(bool(e[k]) for e in episodes)
         lo, hi = wilson_interval(k_succ, n, confidence)
         stages[k] = {"successes": k_succ, "rate": k_succ / n, "ci_low": lo, "ci_high": hi}
     lengths = np.array([e["length"] for e in episodes], dtype=float)
-    result: dict[str, Any] = {
+    return {
         "n_episodes": n,
-        "seed": int(seed),
-        "seeds": seeds,
-        "workers": int(workers),
         "confidence": confidence,
         "stages": stages,
         "episode_length": {
@@ -297,13 +235,7 @@ def evaluate_policy_stages(
             "max": int(lengths.max()),
         },
         "episodes": episodes,
-        "wall_time_s": wall,
-        "video": None,
     }
-    if video is not None:
-        rec = record_rollout(policy, video, seeds[0], env_id=env_id, env_kwargs=env_kwargs)
-        result["video"] = rec["video"]
-    return result
 
 
 def format_results(result: Mapping[str, Any]) -> str:

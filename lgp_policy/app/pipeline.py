@@ -1,14 +1,59 @@
-"""The ``gym-coffee run`` pipeline: record, fit, evaluate, plot, video, into one folder."""
+"""The ``gym-coffee run`` pipeline: record, fit, evaluate, plot, video, into one folder.
+
+:data:`PIPELINE_STAGES` is the one list of stages: the progress lines (``[i/n] stage: ...``), the
+timings in ``results.json`` (wall and CPU seconds per stage, the evaluation workers' CPU included)
+and ``benchmarks/pipeline.py`` all come from it. ``results.json`` is written (atomically) after
+every stage, so a run that is interrupted keeps what finished: ``"status"`` says
+``"running"``, ``"interrupted"`` (with the stage) or ``"complete"``.
+
+Each evaluation layout is rolled out once: the first layout's observations (for Fig. 5) and
+frames (for the video) are kept from the evaluation roll-out itself. The whole run limits BLAS to
+one thread (the GPs' matrices are small; more threads only spin).
+"""
 
 from __future__ import annotations
 
 import json
+import resource
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-__all__ = ["run_pipeline"]
+from lgp_policy._io import atomic_write_text
+
+__all__ = ["PIPELINE_STAGES", "RUN_FILES", "run_pipeline"]
+
+PIPELINE_STAGES: tuple[tuple[str, str], ...] = (
+    ("record", "recording demonstrations with the scripted teacher"),
+    ("fit", "fitting the local heteroscedastic GPs"),
+    ("evaluate", "evaluating on new layouts"),
+    ("plots", "plotting Figs. 1, 2, 4, 5"),
+    ("video", "writing the rollout video of the first layout"),
+)
+"""``(name, what it does)`` in order; ``plots`` and ``video`` can be switched off."""
+
+RUN_FILES = (
+    "demonstrations.npz",
+    "policy.npz",
+    "constraints.json",
+    "results.json",
+    "fig1_heteroscedastic.png",
+    "fig2_clustering.png",
+    "fig4_constraints.png",
+    "fig5_reproduction.png",
+    "rollout.gif",
+)
+"""The files ``run`` writes into its folder (``gym-coffee run --force`` removes these first)."""
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and of its finished children (evaluation workers)."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def run_pipeline(
@@ -22,80 +67,146 @@ def run_pipeline(
     plots: bool = True,
     policy_kwargs: dict[str, Any] | None = None,
     progress: bool = True,
+    force: bool = False,
 ) -> dict[str, Any]:
-    """Record, fit, evaluate, plot; write everything into ``out``; return ``results.json``."""
+    """Record, fit, evaluate, plot; write everything into ``out``; return ``results.json``.
+
+    Args:
+        out: the output folder (created if missing).
+        n_demos: demonstrations recorded with the scripted teacher (seeds ``seed, seed+1..``).
+        n_episodes: evaluation layouts (seeds ``EVAL_SEED_OFFSET + seed + i``).
+        seed: seed of demonstrations and layouts.
+        workers: evaluation worker processes.
+        video, plots: write ``rollout.gif`` / the figures.
+        policy_kwargs: keywords of :class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy`.
+        progress: progress bars.
+        force: replace files of an earlier run (:data:`RUN_FILES`) in ``out``; without it they
+            are an error, raised before any work.
+
+    Raises:
+        FileExistsError: ``out`` holds a file of :data:`RUN_FILES` and ``force`` is false.
+    """
     import gymnasium as gym
+    from threadpoolctl import threadpool_limits
 
     import gym_coffee
-    from lgp_policy.app.evaluation import evaluate_policy_stages, format_results, record_rollout
+    from lgp_policy.app.evaluation import (
+        evaluate_policy_stages,
+        format_results,
+        write_episode_video,
+    )
     from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
     out = Path(out)
+    present = [n for n in RUN_FILES if (out / n).exists()]
+    if present and not force:
+        raise FileExistsError(
+            f"{out} holds files of an earlier run ({', '.join(present)}); pass force=True "
+            "(--force) to replace them, or choose a new folder"
+        )
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    timings: dict[str, float] = {}
-
-    print(f"[1/5] recording {n_demos} demonstrations (seeds {seed}..)", flush=True)
-    env = gym.make("gym_coffee/CoffeeTask-v0")
-    try:
-        demos = gym_coffee.collect_demonstrations(env, n=n_demos, seed=seed, progress=progress)
-    finally:
-        env.close()
-    demos.save(out / "demonstrations.npz", overwrite=True)
-    timings["record_s"] = time.perf_counter() - t0
-
-    print("[2/5] fitting the local heteroscedastic GPs", flush=True)
-    t = time.perf_counter()
-    policy = GPDemonstrationPolicy(**(policy_kwargs or {})).fit(demos, progress=progress)
-    policy_path = policy.save(out / "policy.npz", overwrite=True)
-    timings["fit_s"] = time.perf_counter() - t
-    print(f"      fitted in {policy.fit_time_:.1f} s -> {policy_path}", flush=True)
-    report = policy.constraints_
-    (out / "constraints.json").write_text(json.dumps(report, indent=2))
-    for iv in report["intervals"]:
-        print(f"      tight: {iv['label']}")
-    for c in report["checks"]:
-        status = "ok" if c["tight"] else "NOT tight"
-        print(f"      {c['stage']} at t {c['phase']:.2f}: {c['expected_frame']} frame {status}")
-
-    print(f"[3/5] evaluating on {n_episodes} new layouts", flush=True)
-    t = time.perf_counter()
-    result = evaluate_policy_stages(
-        policy, n_episodes, seed=seed, workers=workers, progress=progress
-    )
-    timings["evaluate_s"] = time.perf_counter() - t
-    print(format_results(result), flush=True)
-
-    files: dict[str, str] = {
-        "policy": str(policy_path),
-        "constraints": str(out / "constraints.json"),
-        "demonstrations": str(out / "demonstrations.npz"),
+    stages = [(n, what) for n, what in PIPELINE_STAGES if (n != "plots" or plots)]
+    stages = [(n, what) for n, what in stages if (n != "video" or video)]
+    results: dict[str, Any] = {
+        "status": "running",
+        "stages": [n for n, _ in stages],
+        "done": [],
+        "timings": {},
+        "files": {},
     }
-    if plots:
-        print("[4/5] plotting", flush=True)
-        t = time.perf_counter()
-        from lgp_policy.app import plots as _plots
 
-        files.update(_plots.make_all(policy, demos, out, seed=result["seeds"][0]))
-        timings["plots_s"] = time.perf_counter() - t
-    if video:
-        print("[5/5] recording a rollout video", flush=True)
-        t = time.perf_counter()
+    def save() -> None:
+        atomic_write_text(out / "results.json", json.dumps(results, indent=2), force=True)
+
+    @contextmanager
+    def stage(name: str, detail: str = "") -> Iterator[None]:
+        i = [n for n, _ in stages].index(name) + 1
+        what = dict(stages)[name]
+        print(f"[{i}/{len(stages)}] {name}: {what}{detail}", flush=True)
+        wall, cpu = time.perf_counter(), _cpu_seconds()
         try:
-            rec = record_rollout(policy, out / "rollout.gif", result["seeds"][0])
-            files["video"] = rec["video"]
-        except (ImportError, OSError, ValueError) as exc:  # video is a nice-to-have
-            print(f"      video skipped: {exc}", file=sys.stderr)
-        timings["video_s"] = time.perf_counter() - t
-    timings["total_s"] = time.perf_counter() - t0
-    results = {
-        "demonstrations": {"n": len(demos), "seeds": demos.seeds},
-        "policy": {"params": policy.get_params(), "fit_time_s": policy.fit_time_},
-        "constraints": report,
-        "evaluation": result,
-        "files": files,
-        "timings": timings,
+            yield
+        except BaseException:
+            results["status"] = "interrupted"
+            results["interrupted_in"] = name
+            save()
+            raise
+        results["timings"][name] = {
+            "wall_s": time.perf_counter() - wall,
+            "cpu_s": _cpu_seconds() - cpu,
+        }
+        results["done"].append(name)
+        save()
+
+    t0, cpu0 = time.perf_counter(), _cpu_seconds()
+    with threadpool_limits(limits=1, user_api="blas"):
+        with stage("record", f" ({n_demos}, seeds {seed}..{seed + n_demos - 1})"):
+            env = gym.make(gym_coffee.ENV_ID)
+            try:
+                demos = gym_coffee.collect_demonstrations(
+                    env, n=n_demos, seed=seed, progress=progress
+                )
+            finally:
+                env.close()
+            demos.save(out / "demonstrations.npz", overwrite=True)
+            results["demonstrations"] = {"n": len(demos), "seeds": demos.seeds}
+            results["files"]["demonstrations"] = str(out / "demonstrations.npz")
+
+        with stage("fit"):
+            policy = GPDemonstrationPolicy(**(policy_kwargs or {})).fit(demos, progress=progress)
+            policy_path = policy.save(out / "policy.npz", overwrite=True)
+            report = policy.constraints_
+            atomic_write_text(out / "constraints.json", json.dumps(report, indent=2), force=True)
+            results["policy"] = {"params": policy.get_params(), "fit_time_s": policy.fit_time_}
+            results["constraints"] = report
+            results["files"].update(
+                policy=str(policy_path), constraints=str(out / "constraints.json")
+            )
+            print(f"      fitted in {policy.fit_time_:.1f} s -> {policy_path}", flush=True)
+            for iv in report["intervals"]:
+                print(f"      tight: {iv['label']}")
+            for c in report["checks"]:
+                status = "ok" if c["tight"] else "NOT tight"
+                frame = c["expected_frame"]
+                print(f"      {c['stage']} at t {c['phase']:.2f}: {frame} frame {status}")
+
+        with stage("evaluate", f" ({n_episodes} layouts, {workers} worker(s))"):
+            result = evaluate_policy_stages(
+                policy,
+                n_episodes,
+                seed=seed,
+                workers=workers,
+                progress=progress,
+                keep_first=True,
+                render_first=video,
+            )
+            first = result.pop("first_episode")
+            results["evaluation"] = result
+            print(format_results(result), flush=True)
+
+        if plots:
+            with stage("plots"):
+                from lgp_policy.app import plots as _plots
+
+                results["files"].update(_plots.make_all(policy, out, episode=first))
+        if video:
+            with stage("video"):
+                try:
+                    path = write_episode_video(first, out / "rollout.gif", force=True)
+                    results["files"]["video"] = str(path)
+                    results["evaluation"]["video"] = str(path)
+                except (ImportError, OSError, ValueError) as exc:  # video is a nice-to-have
+                    print(f"      video skipped: {exc}", file=sys.stderr)
+    results["timings"]["total"] = {
+        "wall_s": time.perf_counter() - t0,
+        "cpu_s": _cpu_seconds() - cpu0,
     }
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    print(f"done in {timings['total_s']:.0f} s; results in {out / 'results.json'}", flush=True)
+    results["status"] = "complete"
+    save()
+    total = results["timings"]["total"]
+    print(
+        f"done in {total['wall_s']:.0f} s ({total['cpu_s']:.0f} CPU s); "
+        f"results in {out / 'results.json'}",
+        flush=True,
+    )
     return results

@@ -21,6 +21,7 @@ __all__ = [
     "plot_heteroscedastic",
     "plot_reproduction",
     "rollout_trace",
+    "trace_from_episode",
 ]
 
 AXES = ("x", "y", "z")
@@ -47,10 +48,18 @@ def _plt() -> Any:
     return plt
 
 
+def _save(fig: Any, path: str | Path) -> Path:
+    """Save a figure (PNG, 110 dpi) and close it."""
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
 def _stage_lines(ax: Any, policy: Any) -> None:
     phases = policy.constraints_.get("stage_phases", {}) if hasattr(policy, "constraints_") else {}
     for stage, s in phases.items():
-        if s is None:
+        if s is None or stage not in STAGE_LABELS:  # the task stages only (no gripper events)
             continue
         ax.axvline(s, color="k", ls=":", lw=0.8)
         ax.text(
@@ -130,57 +139,78 @@ def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0
         "Learned policies relative to the objects' initial poses (cf. Fig. 4)", fontsize=10
     )
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
-def rollout_trace(policy: Any, seed: int, *, env_id: str = "gym_coffee/CoffeeTask-v0") -> dict:
-    """Run ``policy`` closed loop on ``reset(seed=seed)`` and log what Fig. 5 needs.
+def trace_from_episode(policy: Any, episode: Any) -> dict[str, Any]:
+    """What Fig. 5 needs, computed after the fact from an episode rolled out with
+    ``keep_observations=True``: ``policy.predict_distribution`` replayed on the episode's
+    observations, in order, from a fresh start (the policy is deterministic, so the replay
+    takes the very actions of the roll-out; this is checked).
 
     Returns:
         ``{"phase" (n,), "ee_pos" (n, 3), "joint_pos" (n, 7), "joint_std" (n, 7),
-        "targets": {frame: (n, 3) world targets}, "reached": {stage: bool}}``.
+        "targets": {frame: (n, 3) world targets}, "reached": {stage: bool}}`` for the ``n``
+        observations the policy acted on.
     """
-    import gymnasium as gym
+    import inspect
 
-    import gym_coffee  # noqa: F401
+    from gym_coffee.env import object_frames, obs_part
     from lgp_policy.lfd.reproduction import frame_estimate
 
-    env = gym.make(env_id)
-    try:
-        obs, info = env.reset(seed=int(seed))
-        from gym_coffee.env import object_frames, obs_part
+    if episode.observations is None:
+        raise ValueError("the episode has no observations (roll it out with keep_observations)")
+    obs = np.asarray(episode.observations, dtype=float)[:-1]  # the last one was not acted on
+    if "episode_start" in inspect.signature(policy.predict_distribution).parameters:
+        # a policy with memory (online frame filter, event-driven phase): replay step by step
+        steps = [
+            policy.predict_distribution(o, episode_start=np.array([i == 0]))
+            for i, o in enumerate(obs)
+        ]
+        phase = np.concatenate([d.phase for d in steps]).astype(float)
+        joint_std = np.concatenate([d.joint_std for d in steps]).astype(float)
+        actions = np.concatenate([d.action for d in steps])
+    else:
+        dist = policy.predict_distribution(obs)
+        phase, joint_std = np.asarray(dist.phase, float), np.asarray(dist.joint_std, float)
+        actions = np.asarray(dist.action)
+    if episode.actions is not None and not np.allclose(actions, episode.actions, atol=1e-6):
+        raise RuntimeError("replaying the policy on the episode gave other actions")
+    frames = object_frames(obs[0])
+    targets = {}
+    for n in policy.frame_names_:
+        if n not in frames:
+            continue
+        # the grasp point (the first 3 of the frame's task vector) at each phase
+        m = np.stack(
+            [np.interp(phase, policy.phase_grid_, col) for col in policy.mean_[n][:, :3].T], axis=1
+        )
+        o, R = frames[n]
+        targets[n] = np.stack([frame_estimate(o, R, mi, np.ones(3)).position for mi in m])
+    return {
+        "phase": phase,
+        "ee_pos": np.stack([obs_part(o, "ee_pos") for o in obs]).astype(float),
+        "joint_pos": np.stack([obs_part(o, "joint_pos") for o in obs]).astype(float),
+        "joint_std": joint_std,
+        "targets": targets,
+        "reached": {k: bool(episode.reached.get(k, False)) for k in STAGE_LABELS},
+    }
 
-        frames = object_frames(obs)
-        log: dict[str, list[Any]] = {"phase": [], "ee_pos": [], "joint_pos": [], "joint_std": []}
-        targets: dict[str, list[Any]] = {n: [] for n in policy.frame_names_ if n in frames}
-        reached = {k: bool(info.get(k, False)) for k in STAGE_LABELS}
-        done = False
-        while not done:
-            dist = policy.predict_distribution(obs)
-            s = float(dist.phase[0])
-            log["phase"].append(s)
-            log["ee_pos"].append(np.asarray(obs_part(obs, "ee_pos"), dtype=float))
-            log["joint_pos"].append(np.asarray(obs_part(obs, "joint_pos"), dtype=float))
-            log["joint_std"].append(dist.joint_std[0])
-            for n in targets:
-                m = np.array(  # the grasp point (the first 3 of the frame's task vector)
-                    [np.interp(s, policy.phase_grid_, col) for col in policy.mean_[n][:, :3].T]
-                )
-                o, R = frames[n]
-                targets[n].append(frame_estimate(o, R, m, np.ones(3)).position)
-            obs, _r, terminated, truncated, info = env.step(dist.action[0])
-            for k in reached:
-                reached[k] |= bool(info.get(k, False))
-            done = bool(terminated or truncated)
+
+def rollout_trace(policy: Any, seed: int, *, env_factory: Any = None) -> dict[str, Any]:
+    """Roll ``policy`` out on ``reset(seed=seed)`` (the one episode loop) and return
+    :func:`trace_from_episode`. ``env_factory`` defaults to ``gym_coffee.ENV_ID``."""
+    import gymnasium as gym
+
+    import gym_coffee
+    from lgp_policy.rollout import run_episode
+
+    env = env_factory() if env_factory is not None else gym.make(gym_coffee.ENV_ID)
+    try:
+        episode = run_episode(policy, env, seed, flags=tuple(STAGE_LABELS), keep_observations=True)
     finally:
         env.close()
-    out = {k: np.asarray(v) for k, v in log.items()}
-    out["targets"] = {n: np.asarray(v) for n, v in targets.items()}
-    out["reached"] = reached
-    return out
+    return trace_from_episode(policy, episode)
 
 
 def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
@@ -234,10 +264,7 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     flags = ", ".join(f"{v} {'yes' if reached.get(k) else 'no'}" for k, v in STAGE_LABELS.items())
     fig.suptitle(f"Reproduction on a new layout (cf. Fig. 5): {flags}", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _pick_dimension(encoder: Any) -> tuple[str, int]:
@@ -330,10 +357,7 @@ def plot_heteroscedastic(
     ax.grid(alpha=0.3)
     fig.suptitle("Standard vs heteroscedastic GP on the demonstrations (cf. Fig. 1)", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_clustering(
@@ -387,17 +411,25 @@ def plot_clustering(
     ax.legend(fontsize=7, ncol=3, loc="upper left", markerscale=2)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
-def make_all(policy: Any, demos: Any, out: str | Path, *, seed: int) -> dict[str, str]:
-    """Write all four figures into ``out``; returns ``{name: path}``."""
+def make_all(
+    policy: Any, out: str | Path, *, seed: int | None = None, episode: Any = None
+) -> dict[str, str]:
+    """Write all four figures into ``out``; returns ``{name: path}``.
+
+    Fig. 5 uses ``episode`` (an :class:`~lgp_policy.rollout.Episode` with observations, e.g. the
+    first evaluation layout's) when given, else a roll-out on ``reset(seed=seed)``.
+    """
     out = Path(out)
+    if episode is None and seed is None:
+        raise ValueError("make_all needs the episode to plot or the seed of one")
     files = {"fig4_constraints": str(plot_constraint_profile(policy, out / "fig4_constraints.png"))}
-    trace = rollout_trace(policy, seed)
+    if episode is not None:
+        trace = trace_from_episode(policy, episode)
+    else:
+        trace = rollout_trace(policy, int(seed))  # type: ignore[arg-type]
     files["fig5_reproduction"] = str(
         plot_reproduction(policy, trace, out / "fig5_reproduction.png")
     )

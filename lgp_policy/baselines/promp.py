@@ -44,7 +44,8 @@ class ProMPPolicy(GPDemonstrationPolicy):
     """A ProMP per frame, reproduced like the GP policy (stable-baselines3 ``predict``).
 
     Args:
-        robot: kinematics; default the Panda's.
+        robot: kinematics; default the adapter's robot.
+        adapter: how observations are read; default gym-coffee's adapter.
         n_weights_per_dim: radial basis functions per output dimension of each ProMP.
         n_iter: most EM iterations of ``ProMP.imitate``.
         **kwargs: :class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy` arguments (``n_steps``,
@@ -58,6 +59,7 @@ class ProMPPolicy(GPDemonstrationPolicy):
     def __init__(
         self,
         robot: Any = None,
+        adapter: Any = None,
         *,
         n_weights_per_dim: int = 30,
         n_iter: int = 1000,
@@ -65,16 +67,20 @@ class ProMPPolicy(GPDemonstrationPolicy):
     ) -> None:
         if "model" in kwargs:
             raise TypeError("ProMPPolicy does not take 'model': the encoder is a ProMP per frame")
-        super().__init__(robot, model="empirical", **kwargs)
+        super().__init__(robot, adapter, model="empirical", **kwargs)
         self.n_weights_per_dim = n_weights_per_dim
         self.n_iter = n_iter
 
-    def fit(self, demos: Sequence[Any], *, progress: bool = False) -> ProMPPolicy:
+    def fit(
+        self, demos: Sequence[Any], *, progress: bool = False, allow_failed: bool = False
+    ) -> ProMPPolicy:
         """Resample and align the demonstrations as the GP policy does, fit one ProMP per frame.
 
         Args:
-            demos: a ``DemonstrationSet`` (or sequence of ``Demonstration``), at least one.
+            demos: a ``TrajectorySet``, or what the adapter converts (a gym-coffee
+                ``DemonstrationSet``), at least one.
             progress: print what is being fitted.
+            allow_failed: also fit demonstrations that did not succeed.
 
         Returns:
             ``self``.
@@ -82,7 +88,9 @@ class ProMPPolicy(GPDemonstrationPolicy):
         if int(self.n_weights_per_dim) < 2:
             raise ValueError(f"n_weights_per_dim must be >= 2, got {self.n_weights_per_dim!r}")
         ProMP = _promp_class()
-        super().fit(demos, progress=progress)  # the empirical encoder: resampling and alignment
+        super().fit(
+            demos, progress=progress, allow_failed=allow_failed
+        )  # the empirical encoder: resampling and alignment
         encoder = self.encoder_
         self.promps_ = {}
         for name in self.frame_names_:

@@ -1,63 +1,78 @@
 """``GPDemonstrationPolicy``: the paper's LfD controller as a stable-baselines3 ``PolicyPredictor``.
 
-``fit(demos)`` encodes the demonstrations (:class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`:
-joint space plus the hand relative to the cup and to the machine) and then evaluates every
-GP once on a dense phase grid. The paper notes that "the prediction part can then be performed very
-quickly": ``predict`` only interpolates that table and runs one step of Algorithm 3
-(:func:`~lgp_policy.lfd.reproduction.reproduction_step`) from the *measured* joint positions, so the
-controller is closed loop and takes well under a millisecond.
+Task-agnostic: the policy sees a task only through an adapter
+(:class:`~lgp_policy.lfd.adapters.ObservationAdapter`: observation -> time, robot state, named
+frames, events; the robot's kinematics; the action mapping). Without one it uses the gym-coffee
+adapter (:mod:`lgp_policy.lfd.adapters.coffee`), so ``GPDemonstrationPolicy.fit(coffee_demos)``
+works as before.
+
+``fit(demos)`` takes a :class:`~lgp_policy.lfd.demonstrations.TrajectorySet` (plain arrays) or
+anything the adapter converts (``adapter.to_trajectories``, e.g. a gym-coffee
+``DemonstrationSet``), encodes it (:class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`: the
+robot state plus the gripper command, and the hand relative to every frame) and evaluates every
+GP once on a dense phase grid. The paper notes that "the prediction part can then be performed
+very quickly": ``predict`` only interpolates that table and runs one step of Algorithm 3
+(:func:`~lgp_policy.lfd.reproduction.reproduction_step`) from the *measured* state, for a whole
+batch of observations in one vectorised pass.
 
 By default the demonstrations are first aligned in time on the gripper command's closing and
 opening events (``align="gripper"``; landmarks at their mean normalised time, see
-:func:`lgp_policy.lfd.encoding.phase_of`), so that reach, release and press line up across
-demonstrations whose tempo differs.
+:func:`lgp_policy.lfd.encoding.phase_of`).
 
-Per step, for an observation with ``time`` ``t`` (seconds since reset):
+Per step, for each observation:
 
-1. phase ``s = (t + lookahead * control_dt) / duration`` (``duration`` = mean demonstration length,
-   clipped to ``[0, 1]``; after the demonstrated duration the final posture is held);
-2. the joint-space estimate ``theta_hat(s)`` and, for every object in the observation, the world
-   target ``o + R x_hat(s)`` with covariance ``R diag(std^2) R^T``. ``x`` is the task vector of
-   Algorithm 3: the grasp point and, with ``approach_offset`` (default 0.1 m), a second point
-   that far behind it on the hand's approach axis (``p = 6``), so that the object frames also
-   carry the approach direction; ``approach_offset=None`` is the paper's position-only ``p = 3``
-   (the hand's orientation then comes from the joint-space estimate alone);
-3. Algorithm 3 (information-form product) gives the joint increment, scaled down as a whole if a
-   joint would move more than ``max_joint_step`` (the env's ``MAX_JOINT_STEP``);
-4. the gripper opening is the joint-space GP's gripper mean (the teacher's *commanded* opening);
-5. ``action = gym_coffee.robot.action_from_targets(q, q + dtheta, gripper)``.
+1. **phase**: ``s = (tau + lookahead * control_dt) / duration`` with ``tau`` the episode's task
+   clock (the observation's time, or counted control steps), clipped to ``[0, 1]``. The clock
+   *waits* (event-driven phase): just before each demonstrated gripper event (closing, opening)
+   until the grasp point is within ``reach_tolerance`` of the target of the frame that is
+   tightest there, and while an event the demonstrations reached by phase ``s_e`` (e.g.
+   ``cup_held``) has not been observed yet in this episode; at most ``max_wait`` s in all;
+2. **frames**: each frame's pose is filtered over the episode (a static-object Kalman filter with
+   measurement std ``frame_noise``; a jump of the object is detected and followed); where the
+   adapter says a frame is not observed (a grasped cup) its last estimate is kept;
+3. the joint-space estimate and, for every frame, the world target ``o + R x_hat(s)`` with
+   precision ``R diag(1/var) R^T``. ``x`` is the task vector: the grasp point and, for a robot
+   with a hand orientation, a second point ``approach_offset`` behind it on the approach axis
+   (``p = 6``), so that the frames also carry the approach direction;
+4. Algorithm 3 (information form) gives the state increment, scaled down as a whole if a
+   coordinate would move more than the action map's ``max_step``;
+5. ``action = adapter.action_map(state, step, gripper)``, the gripper being the joint-space GP's
+   gripper mean.
 
-For residual RL and diagnostics: :meth:`GPDemonstrationPolicy.phase` (normalised time of an
-observation) and :meth:`GPDemonstrationPolicy.predict_distribution` (phase, action, fused joint
-increment and its std, per-frame predicted std at that phase).
+The per-environment memory (clock, filters, seen events) is the SB3 ``state``: pass back what
+``predict`` returned, with ``episode_start``. With ``state=None`` the policy keeps it itself and
+starts a new episode where ``episode_start`` says so or the observation's time went back.
 
 Files: one ``.npz`` (``allow_pickle=False``) holding the phase table and a JSON string ``metadata``
-(format name, schema version, parameters, frame names, the constraint report). Saving is atomic
-and refuses to overwrite unless ``overwrite=True``; loading validates and says what is wrong.
+(format name, schema version, parameters, adapter name, frame names, the constraint report).
+Saving is atomic and refuses to overwrite unless ``overwrite=True``; loading validates every
+name and number before building anything.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 import os
-import tempfile
 import time as _time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, parse_json, read_npz
+from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
+from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
 from lgp_policy.lfd.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
-    MIN_VARIANCE,
-    FrameEstimate,
+    frame_targets,
     limit_step,
     reproduction_step,
 )
@@ -68,17 +83,27 @@ __all__ = [
     "GPDemonstrationPolicy",
     "PolicyDistribution",
     "PolicyFileError",
+    "PolicyState",
+    "hand_points",
 ]
 
 FORMAT_NAME = "lgp_policy.gp_demonstration_policy"
 """``format`` and ``kind`` of the file's JSON metadata (``residual.load_any_policy`` keys on it)."""
-SCHEMA_VERSION = 1
-STAGE_NAMES = ("cup_grasped", "cup_placed", "button_pressed")
-#: Which frame should be tight at which stage (the paper's Fig. 4 and the constraint check).
-EXPECTED_TIGHT_FRAME = {"cup_grasped": "cup", "cup_placed": "machine", "button_pressed": "machine"}
+SCHEMA_VERSION = 2
+_READABLE_VERSIONS = (1, 2)
+MODELS = ("local", "heteroscedastic", "exact", "empirical")
+#: Bounds on numbers read from files or given to the constructor.
+MAX_GRID = 100_000
+MAX_STEPS = 100_000
+MAX_DURATION = 1e5
+MAX_CONTROL_DT = 60.0
+#: Kalman filter of a static frame: process std per step = frame_noise / FILTER_WINDOW (an
+#: averaging window of about this many steps) and innovation gate (std) for a jump.
+FILTER_WINDOW = 25.0
+JUMP_GATE = 4.0
 
 
-class PolicyFileError(ValueError):
+class PolicyFileError(FileFormatError):
     """A policy file is missing, malformed or of an unsupported version."""
 
 
@@ -88,11 +113,11 @@ class PolicyDistribution:
 
     Attributes:
         phase: ``(n,)`` normalised time at which the GPs were read (includes the lookahead).
-        action: ``(n, 8)`` float32, the action ``predict`` returns.
-        joint_increment: ``(n, 7)`` fused joint increment of Algorithm 3 (before step limiting).
-        joint_std: ``(n, 7)`` its std (diagonal of the fused covariance; the remaining variance).
-        gripper: ``(n,)`` commanded gripper opening (m).
-        frame_std: per frame (``"joint"``, ``"cup"``, ``"machine"``), the GPs' predicted std at
+        action: ``(n, a)`` float32, the action ``predict`` returns.
+        joint_increment: ``(n, k)`` fused state increment of Algorithm 3 (before step limiting).
+        joint_std: ``(n, k)`` its std (diagonal of the fused covariance; the remaining variance).
+        gripper: ``(n,)`` commanded gripper.
+        frame_std: per frame (``"joint"`` and the object frames), the GPs' predicted std at
             ``phase``, ``(n, d)``; small = constrained.
     """
 
@@ -102,6 +127,43 @@ class PolicyDistribution:
     joint_std: NDArray[np.float64]
     gripper: NDArray[np.float64]
     frame_std: dict[str, NDArray[np.float64]]
+
+
+@dataclass
+class PolicyState:
+    """Per-environment memory of the policy (row ``i`` = environment ``i``): the SB3 ``state``.
+
+    Attributes:
+        clock: ``(n,)`` task time (s): the episode's time minus the time spent waiting.
+        last_time: ``(n,)`` time of the last observation (s).
+        waited: ``(n,)`` time spent waiting for events (s).
+        seen: per event, ``(n,)`` whether it has been observed in this episode.
+        reached: per gripper landmark (index), ``(n,)`` whether the hand reached its target.
+        position, variance, rotation: per frame, the filtered pose ``(n, d)``, its variance
+            ``(n,)`` and the last observed rotation ``(n, d, d)``.
+        outliers: per frame, ``(n,)`` consecutive observations outside the filter's gate.
+        fresh: ``(n,)`` rows that start a new episode at the next observation.
+    """
+
+    clock: NDArray[np.float64]
+    last_time: NDArray[np.float64]
+    waited: NDArray[np.float64]
+    fresh: NDArray[np.bool_]
+    seen: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
+    reached: dict[int, NDArray[np.bool_]] = field(default_factory=dict)
+    position: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    variance: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    rotation: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    outliers: dict[str, NDArray[np.int64]] = field(default_factory=dict)
+
+    @classmethod
+    def new(cls, n: int) -> PolicyState:
+        """Memory for ``n`` environments, all at the start of an episode."""
+        z = np.zeros(n)
+        return cls(z.copy(), z.copy(), z.copy(), np.ones(n, dtype=bool))
+
+    def __len__(self) -> int:
+        return int(self.clock.shape[0])
 
 
 class _HybridFit:
@@ -120,90 +182,146 @@ class _HybridFit:
         return bound
 
 
-def _default_robot() -> Any:
-    from gym_coffee.kinematics import PandaKinematics
+def _coffee_adapter() -> Any:
+    from lgp_policy.lfd.adapters.coffee import CoffeeAdapter
 
-    return PandaKinematics()
-
-
-def _rot_z(yaw: NDArray[np.float64]) -> NDArray[np.float64]:
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.zeros((*np.shape(yaw), 3, 3))
-    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
-    return R
+    return CoffeeAdapter()
 
 
-def demonstration_frames(demo: Any) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]:
-    """Initial object frames of one ``gym_coffee`` demonstration, as ``object_frames`` builds them.
+def _builtin_adapter(name: str) -> Any:
+    if name == "coffee":
+        return _coffee_adapter()
+    raise PolicyFileError(
+        f"the policy was fitted with the adapter {name!r}; pass it: load(path, adapter=...)"
+    )
 
-    cup: initial position, identity rotation; machine: initial position, ``Rz(yaw)``.
+
+def _finite(name: str, value: Any, low: float, high: float, *, low_open: bool = True) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    ok = math.isfinite(v) and (v > low if low_open else v >= low) and v <= high
+    if not ok or isinstance(value, bool):
+        bracket = "(" if low_open else "["
+        raise ValueError(
+            f"{name} must be a finite number in {bracket}{low}, {high}], got {value!r}"
+        )
+    return v
+
+
+def _integer(name: str, value: Any, low: int, high: int) -> int:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not low <= value <= high
+    ):
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    return int(value)
+
+
+def hand_points(
+    robot: Any, q: NDArray[np.float64], offset: float | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The task vector of ``q (k,)`` or a batch ``(n, k)``: the grasp point ``(n, d)``, or with
+    ``offset`` the grasp point and a point ``offset`` behind it on the hand's approach (last) axis
+    ``(n, 2d)``; and its Jacobian ``(n, p, k)`` (unbatched for one ``q``).
+
+    With ``p`` the grasp point, ``z`` the approach axis and ``omega_i`` the angular-velocity
+    column ``i`` of the geometric Jacobian: ``d(p - offset z)/dq_i = J_p[:, i] - offset
+    (omega_i x z)``.
     """
-    frames = {}
-    for name, pos in demo.object_pos.items():
-        o = np.asarray(pos[0], dtype=float)
-        if name == "cup":
-            frames[name] = (o, np.eye(3))
-        else:
-            x, y, z, w = np.asarray(demo.object_quat[name][0], dtype=float)
-            yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-            frames[name] = (o, _rot_z(np.asarray(yaw)))
-    return frames
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        x, J = hand_points(robot, q[None], offset)
+        return x[0], J[0]
+    both = getattr(robot, "pose_and_jacobian", None)
+    if both is not None:
+        p, R, J6 = both(q)
+    else:
+        p, R = robot.forward_pose(q)
+        J6 = np.asarray(robot.jacobian(q), dtype=float)
+    d = p.shape[-1]
+    Jp = J6[:, :d]
+    if offset is None:
+        return p, Jp
+    z = R[:, :, -1]
+    Jw = J6[:, d:]  # (n, 3, k)
+    zx, zy, zz = z[:, 0:1], z[:, 1:2], z[:, 2:3]  # omega_i x z for every column i, (n, 3, k)
+    cross = np.stack(
+        [
+            Jw[:, 1] * zz - Jw[:, 2] * zy,
+            Jw[:, 2] * zx - Jw[:, 0] * zz,
+            Jw[:, 0] * zy - Jw[:, 1] * zx,
+        ],
+        axis=1,
+    )
+    J2 = Jp - offset * cross
+    return np.concatenate([p, p - offset * z], axis=1), np.concatenate([Jp, J2], axis=1)
 
 
-def gripper_events(demo: Any) -> NDArray[np.float64]:
-    """Times at which the demonstrated gripper command crosses half open (closing or opening),
+def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
+    """Times at which a demonstration's gripper command crosses ``midpoint`` (closing or opening),
     linearly interpolated between control steps."""
-    t = np.asarray(demo.time, dtype=float)
-    g = np.asarray(demo.actions, dtype=float)[:, 7]  # in [-1, 1]; 0 = half open
+    if tr.gripper is None:
+        return np.zeros(0)
+    t, g = tr.time, tr.gripper - midpoint
     i = np.flatnonzero(np.sign(g[:-1]) * np.sign(g[1:]) < 0)
     w = g[i] / (g[i] - g[i + 1])
     return t[i] + w * (t[i + 1] - t[i])
 
 
-def stage_phases(demo: Any, phase: NDArray[np.float64] | None = None) -> dict[str, float | None]:
-    """Phase at which each stage flag first became true in a demonstration (``phase``: the
-    demonstration's phase per step; default ``t / duration``)."""
-    t = np.asarray(demo.time, dtype=float)
-    s = (t - t[0]) / (t[-1] - t[0]) if phase is None else np.asarray(phase, dtype=float)
-    stages = np.asarray(demo.stages, dtype=bool)
+def _event_phases(tr: Trajectory, phase: NDArray[np.float64]) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
-    for j, name in enumerate(STAGE_NAMES):
-        idx = np.flatnonzero(stages[:, j])
-        out[name] = float(s[idx[0]]) if idx.size else None
+    for name, flags in tr.events.items():
+        idx = np.flatnonzero(flags)
+        out[name] = float(phase[idx[0]]) if idx.size else None
     return out
 
 
 class GPDemonstrationPolicy:
     """Closed-loop reproduction of demonstrations with local heteroscedastic GPs (Sec. III).
 
-    Args (keyword-only after ``robot``):
+    Args (keyword-only after ``robot`` and ``adapter``):
 
-    ============== ===================================================================
-    robot          kinematics (``RobotModel``); default ``gym_coffee``'s ``PandaKinematics``
-    n_steps        ``T``, resampled points per demonstration (encoding)
-    n_grid         points of the precomputed phase table used by ``predict``
-    model          encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``, ``empirical``
-    combine        ``LocalGP`` combination: ``product`` (Eqs. 8-9) or the calibrated rule
-    frames         object frames to use (default: all in the demonstrations); ``()`` = joint only
-    alpha          null-space weight of Algorithm 3 (0.5 in the paper)
-    null_space_std ``None``: a frame's null-space information = the joint estimate's; or a std (rad)
-    lookahead      control steps ahead at which the GPs are read (compensates tracking lag)
-    max_joint_step largest joint change per step (rad); default the env's ``MAX_JOINT_STEP``
-    std_scale      per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
-    align          ``"gripper"``: align the demonstrations in time on the gripper command's
-                   closing/opening events (landmarks, piecewise-linear phase) before
-                   encoding; ``None``: plain normalised time (the paper)
-    approach_offset m; adds a second task point this far behind the grasp point along the
-                   hand's approach (z) axis, so each object frame also encodes the approach
-                   direction (task vector p = 6); ``None``: position only (p = 3, the paper).
-                   Needs ``robot.forward_pose`` and ``robot.jacobian`` (``PandaKinematics``)
-    encoder_kwargs extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
-    ============== ===================================================================
+    =============== ===================================================================
+    robot           kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
+    adapter         how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
+                    default the gym-coffee adapter
+    n_steps         ``T``, resampled points per demonstration (encoding), >= 2
+    n_grid          points of the precomputed phase table used by ``predict``, >= 2
+    model           encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``, ``empirical``
+    combine         ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
+                    the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
+    frames          frames to use (default: all in the demonstrations); ``()`` = state only
+    alpha           null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
+    null_space_std  ``None``: a frame's null-space information = the joint estimate's; or a std
+    lookahead       control steps ahead at which the GPs are read (compensates tracking lag)
+    max_joint_step  largest change of a state coordinate per step; default the action map's
+    std_scale       per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
+    align           ``"gripper"``: align the demonstrations in time on the gripper command's
+                    closing/opening events before encoding; ``None``: plain normalised time
+    approach_offset ``"auto"`` (0.1 m for a robot with a hand orientation, else ``None``), a
+                    distance (m) of a second task point behind the grasp point along the hand's
+                    approach axis (task vector p = 6), or ``None``: position only (the paper)
+    frame_noise     std (m) of the observed frame positions for the online filter; 0 = trust
+                    every observation
+    max_wait        s; longest time per episode the phase waits (for the hand to reach the
+                    target before a gripper event, and for a demonstrated event); 0 = clock only
+    reach_tolerance m; before a demonstrated gripper event the phase waits until the grasp point
+                    is this close (or within 3 predicted std) to the target of the tightest frame
+                    at that event
+    encoder_kwargs  extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
+    =============== ===================================================================
 
     Attributes (after ``fit`` or ``load``):
         phase_grid_: ``(n_grid,)``; ``mean_`` / ``std_``: per frame, ``(n_grid, d)`` tables.
-        frame_names_: ``["joint", "cup", "machine"]`` (those used). ``duration_``: mean
-        demonstration duration (s); ``control_dt_``: env control period (s).
+        frame_names_: ``["joint", <frames>...]`` (those used). ``duration_``: mean
+        demonstration duration (s); ``control_dt_``: control period (s).
+        approach_offset_: the resolved approach offset (m or ``None``).
+        event_phases_: per event, the latest phase at which a demonstration first showed it.
+        landmarks_: ``[(phase, frame), ...]``: the aligned gripper events and the frame that is
+            tightest at each (where the phase waits for the hand to arrive).
         constraints_: the constraint report (see :meth:`constraint_report`).
         encoder_: the fitted encoder (only after ``fit``; not saved).
     """
@@ -211,39 +329,65 @@ class GPDemonstrationPolicy:
     def __init__(
         self,
         robot: Any = None,
+        adapter: Any = None,
         *,
         n_steps: int = 200,
         n_grid: int = 500,
         model: str = "local",
-        combine: str = "product",
+        combine: str = DEFAULT_COMBINE,
         frames: Sequence[str] | None = None,
         alpha: float = DEFAULT_ALPHA,
         null_space_std: float | None = None,
         lookahead: float = 1.0,
         max_joint_step: float | None = None,
         std_scale: Mapping[str, float] | None = None,
-        approach_offset: float | None = 0.1,
+        approach_offset: float | str | None = "auto",
         align: str | None = "gripper",
+        frame_noise: float = 0.005,
+        max_wait: float = 2.0,
+        reach_tolerance: float = 0.01,
         encoder_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         self.robot = robot
-        self.n_steps = n_steps
-        self.n_grid = n_grid
-        self.model = model
-        self.combine = combine
-        self.frames = frames
-        self.alpha = alpha
-        self.null_space_std = null_space_std
-        self.lookahead = lookahead
-        self.max_joint_step = max_joint_step
-        self.std_scale = std_scale
+        self.adapter = adapter
+        self.n_steps = _integer("n_steps", n_steps, 2, MAX_STEPS)
+        self.n_grid = _integer("n_grid", n_grid, 2, MAX_GRID)
+        if model not in MODELS:
+            raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+        if combine not in COMBINE_RULES:
+            raise ValueError(f"combine must be one of {COMBINE_RULES}, got {combine!r}")
+        self.model, self.combine = model, combine
+        if frames is not None and (
+            isinstance(frames, str) or not all(isinstance(f, str) for f in frames)
+        ):
+            raise ValueError(f"frames must be a sequence of frame names or None, got {frames!r}")
+        self.frames = None if frames is None else tuple(frames)
+        self.alpha = _finite("alpha", alpha, 0.0, 1.0, low_open=False)
+        self.null_space_std = (
+            None if null_space_std is None else _finite("null_space_std", null_space_std, 0.0, 1e3)
+        )
+        self.lookahead = _finite("lookahead", lookahead, 0.0, 100.0, low_open=False)
+        self.max_joint_step = (
+            None if max_joint_step is None else _finite("max_joint_step", max_joint_step, 0.0, 1e3)
+        )
+        scale = dict(std_scale or {})
+        for k, v in scale.items():
+            _finite(f"std_scale[{k!r}]", v, 0.0, 1e6)
+        self.std_scale = scale or None
+        if not (approach_offset is None or approach_offset == "auto"):
+            approach_offset = _finite("approach_offset", approach_offset, -10.0, 10.0)
         self.approach_offset = approach_offset
+        if align not in ("gripper", None):
+            raise ValueError(f"align must be 'gripper' or None, got {align!r}")
         self.align = align
-        self.encoder_kwargs = encoder_kwargs
+        self.frame_noise = _finite("frame_noise", frame_noise, 0.0, 10.0, low_open=False)
+        self.max_wait = _finite("max_wait", max_wait, 0.0, 1e4, low_open=False)
+        self.reach_tolerance = _finite("reach_tolerance", reach_tolerance, 0.0, 10.0)
+        self.encoder_kwargs = None if encoder_kwargs is None else dict(encoder_kwargs)
 
     # -------------------------------------------------------------- parameters
     def get_params(self) -> dict[str, Any]:
-        """Constructor arguments that are saved with the policy (all but ``robot``)."""
+        """Constructor arguments that are saved with the policy (all but ``robot``/``adapter``)."""
         return {
             "n_steps": self.n_steps,
             "n_grid": self.n_grid,
@@ -257,67 +401,112 @@ class GPDemonstrationPolicy:
             "std_scale": None if self.std_scale is None else dict(self.std_scale),
             "approach_offset": self.approach_offset,
             "align": self.align,
+            "frame_noise": self.frame_noise,
+            "max_wait": self.max_wait,
+            "reach_tolerance": self.reach_tolerance,
             "encoder_kwargs": None if self.encoder_kwargs is None else dict(self.encoder_kwargs),
         }
 
+    def _resolve(self) -> None:
+        """Adapter, robot and action map in use (``adapter_``, ``robot_``)."""
+        self.adapter_ = self.adapter if self.adapter is not None else _coffee_adapter()
+        self.robot_ = self.robot if self.robot is not None else self.adapter_.robot
+        self.gripper_ = getattr(self.adapter_, "gripper", None)
+        step = self.max_joint_step
+        self.max_joint_step_ = float(
+            step if step is not None else self.adapter_.action_map.max_step
+        )
+
+    def _trajectories(self, demos: Any) -> TrajectorySet:
+        if isinstance(demos, TrajectorySet):
+            return demos
+        items = list(demos) if not isinstance(demos, Trajectory) else [demos]
+        if items and all(isinstance(d, Trajectory) for d in items):
+            return TrajectorySet(items)
+        convert = getattr(self.adapter_, "to_trajectories", None)
+        if convert is None:
+            raise TypeError(
+                f"demos must be a TrajectorySet or Trajectory list; the adapter "
+                f"{type(self.adapter_).__name__} cannot convert {type(demos).__name__}"
+            )
+        return convert(demos)
+
     # -------------------------------------------------------------------- fit
     @_HybridFit
-    def fit(self, demos: Any, *, progress: bool = False) -> GPDemonstrationPolicy:
+    def fit(
+        self, demos: Any, *, progress: bool = False, allow_failed: bool = False
+    ) -> GPDemonstrationPolicy:
         """Encode demonstrations and precompute the phase table.
 
         Callable on the class (default parameters) or on an instance.
 
         Args:
-            demos: a ``gym_coffee.DemonstrationSet`` (or any sequence of objects with ``time``,
-                ``joint_pos``, ``actions``, ``ee_pos``, ``object_pos``, ``object_quat``,
-                ``stages``) with at least one demonstration.
+            demos: a :class:`~lgp_policy.lfd.demonstrations.TrajectorySet` (or a list of
+                ``Trajectory``), or what the adapter converts (the coffee adapter: a gym-coffee
+                ``DemonstrationSet``), with at least one demonstration.
             progress: print what is being fitted.
+            allow_failed: fit demonstrations whose ``success`` flag is false too (otherwise
+                they are refused, naming their indices).
 
         Returns:
             ``self``.
         """
-        from gym_coffee.robot import GRIPPER_MAX_OPENING
-
-        demos = list(demos)
-        if not demos:
-            raise ValueError("need at least one demonstration")
         start = _time.perf_counter()
-        times = [np.asarray(d.time, dtype=float) for d in demos]
-        # joint space = 7 joints + the teacher's *commanded* gripper opening (a firm grasp)
-        joints = [
-            np.column_stack(
-                [
-                    np.asarray(d.joint_pos, dtype=float),
-                    (np.asarray(d.actions, dtype=float)[:, 7] + 1.0) / 2.0 * GRIPPER_MAX_OPENING,
-                ]
+        self._resolve()
+        trajs = self._trajectories(demos)
+        failed = [i for i, tr in enumerate(trajs) if not tr.success]
+        if failed and not allow_failed:
+            raise ValueError(
+                f"demonstrations {failed} did not succeed (success=False); remove them or pass "
+                f"allow_failed=True"
             )
-            for d in demos
-        ]
-        robot = self.robot if self.robot is not None else _default_robot()
-        ees = [np.asarray(d.ee_pos, dtype=float) for d in demos]
-        if self.approach_offset is not None:  # second point along the hand's approach axis
-            ees = [
-                np.hstack(
-                    [
-                        ee,
-                        np.stack(
-                            [
-                                hand_points(robot, q, self.approach_offset)[0][3:]
-                                for q in np.asarray(d.joint_pos, dtype=float)
-                            ]
-                        ),
-                    ]
-                )
-                for ee, d in zip(ees, demos, strict=True)
-            ]
-        all_frames = [demonstration_frames(d) for d in demos]
-        names = sorted(all_frames[0]) if self.frames is None else list(self.frames)
+        robot = self.robot_
+        if trajs.state_dim != robot.n_joints:
+            raise ValueError(
+                f"the demonstrations' state has {trajs.state_dim} entries, the robot "
+                f"{type(robot).__name__} has {robot.n_joints}"
+            )
+        available = trajs.frame_names
+        names = available if self.frames is None else list(self.frames)
+        unknown = [n for n in names if n not in available]
+        if unknown:
+            raise ValueError(f"unknown frames {unknown}; the demonstrations have {available}")
+        adapter_frames = tuple(getattr(self.adapter_, "frame_names", ()))
+        missing = [n for n in names if n not in adapter_frames]
+        if missing:
+            raise ValueError(
+                f"frames {missing} are in the demonstrations but the adapter reads only "
+                f"{list(adapter_frames)}"
+            )
         for n in names:
-            if n not in all_frames[0]:
+            d = trajs[0].frames[n][0].shape[1]
+            if d != robot.dim:
                 raise ValueError(
-                    f"unknown frame {n!r}; the demonstrations have {sorted(all_frames[0])}"
+                    f"frame {n!r} is {d}-D but the robot's task space is {robot.dim}-D"
                 )
-        frames = [{n: f[n] for n in names} for f in all_frames]
+        offset = self.approach_offset
+        if offset == "auto":
+            offset = 0.1 if robot.has_orientation else None
+        elif offset is not None and not robot.has_orientation:
+            raise ValueError("approach_offset needs a robot with a hand orientation; use None")
+        self.approach_offset_: float | None = offset  # type: ignore[assignment]
+        if (self.gripper_ is None) != (trajs[0].gripper is None):
+            raise ValueError(
+                "the demonstrations and the adapter disagree on the gripper: "
+                f"demonstrations {'have' if trajs[0].gripper is not None else 'have no'} gripper "
+                f"command, adapter gripper={self.gripper_!r}"
+            )
+        times = [tr.time for tr in trajs]
+        joints = [
+            tr.state if tr.gripper is None else np.column_stack([tr.state, tr.gripper])
+            for tr in trajs
+        ]
+        ees = (
+            [hand_points(robot, tr.state, self.approach_offset_)[0] for tr in trajs]
+            if names
+            else None
+        )
+        frames = [{n: tr.initial_frames()[n] for n in names} for tr in trajs] if names else None
         kwargs = dict(self.encoder_kwargs or {})
         kwargs.setdefault("n_steps", self.n_steps)
         kwargs.setdefault("model", self.model)
@@ -326,8 +515,8 @@ class GPDemonstrationPolicy:
         say = (lambda msg: print(f"  {msg}", flush=True)) if progress else None
         landmarks = None
         self.alignment_ = "none"
-        if self.align == "gripper":
-            events = [gripper_events(d) for d in demos]
+        if self.align == "gripper" and self.gripper_ is not None:
+            events = [gripper_events(tr, self.gripper_.midpoint) for tr in trajs]
             if len({e.size for e in events}) == 1 and events[0].size > 0:
                 landmarks = events
                 self.alignment_ = f"gripper events ({events[0].size})"
@@ -335,51 +524,42 @@ class GPDemonstrationPolicy:
                 self.alignment_ = (
                     "none (gripper event counts differ: " + str([e.size for e in events]) + ")"
                 )
-        elif self.align is not None:
-            raise ValueError(f"align must be 'gripper' or None, got {self.align!r}")
-        encoder.fit(
-            times,
-            joints,
-            ees if names else None,
-            frames if names else None,
-            landmarks=landmarks,
-            progress=say,
-        )
+        encoder.fit(times, joints, ees, frames, landmarks=landmarks, progress=say)
         self.encoder_ = encoder
         self.frame_names_ = list(encoder.frame_names_)
         self.phase_grid_ = np.linspace(0.0, 1.0, self.n_grid)
         self.mean_, self.std_ = {}, {}
         for name in self.frame_names_:
-            m, s = encoder.predict(self.phase_grid_, name)
-            self.mean_[name], self.std_[name] = m, s
+            self.mean_[name], self.std_[name] = encoder.predict(self.phase_grid_, name)
         self.duration_ = float(np.mean(encoder.durations_))
-        dts = [float(np.median(np.diff(t))) for t in times]
-        self.control_dt_ = float(np.median(dts))
-        self.n_demos_ = len(demos)
+        self.control_dt_ = float(np.median([np.median(np.diff(t)) for t in times]))
+        self.n_demos_ = len(trajs)
         lp = encoder.landmark_phases_
         self.stage_phases_ = [
-            stage_phases(d, phase_of(d.time, landmarks[i] if landmarks else None, lp))
-            for i, d in enumerate(demos)
+            _event_phases(tr, phase_of(tr.time, landmarks[i] if landmarks else None, lp))
+            for i, tr in enumerate(trajs)
         ]
+        self.landmarks_ = []
+        if landmarks is not None and names:
+            for s_l in encoder.landmark_phases_:
+                spread = {
+                    n: float(np.sqrt(np.mean(encoder.predict([s_l], n)[1][0, : robot.dim] ** 2)))
+                    for n in names
+                }
+                self.landmarks_.append((float(s_l), min(spread, key=spread.__getitem__)))
+        self.event_phases_ = {}
+        for ev in trajs[0].events:
+            vals = [p.get(ev) for p in self.stage_phases_]
+            if all(v is not None for v in vals):
+                self.event_phases_[ev] = float(max(v for v in vals if v is not None))
         self.constraints_ = self.constraint_report()
-        self.fit_time_ = _time.perf_counter() - start
         self._build_table()
+        self.fit_time_ = _time.perf_counter() - start
         return self
 
     # ------------------------------------------------------------------ table
     def _build_table(self) -> None:
         """Stack the means and variances of all frames in one ``(n_grid, D)`` table."""
-        robot = self.robot if self.robot is not None else _default_robot()
-        self.robot_ = robot
-        if self.max_joint_step is None:
-            from gym_coffee.robot import MAX_JOINT_STEP
-
-            self.max_joint_step_ = float(MAX_JOINT_STEP)
-        else:
-            self.max_joint_step_ = float(self.max_joint_step)
-        from gym_coffee.robot import action_from_targets
-
-        self._action_from_targets = action_from_targets
         scale = dict(self.std_scale or {})
         cols, self._cols = [], {}
         c = 0
@@ -390,75 +570,228 @@ class GPDemonstrationPolicy:
             self._cols[name] = (slice(c, c + d), slice(c + d, c + 2 * d))
             c += 2 * d
         self._table = np.ascontiguousarray(np.hstack(cols))
-        self._obs_slices = _obs_slices()
+        self._memory: PolicyState | None = None
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "_table"):
             raise RuntimeError("This GPDemonstrationPolicy is not fitted; call fit() or load().")
 
-    def _row(self, s: float) -> NDArray[np.float64]:
-        g = self.phase_grid_
-        x = min(max(s, 0.0), 1.0) * (len(g) - 1)
-        i = min(int(x), len(g) - 2)
-        w = x - i
+    def _rows(self, s: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Linear interpolation of the table at phases ``s (n,)`` -> ``(n, D)``."""
+        g = len(self.phase_grid_)
+        x = np.clip(s, 0.0, 1.0) * (g - 1)
+        i = np.minimum(x.astype(np.intp), g - 2)
+        w = (x - i)[:, None]
         return (1.0 - w) * self._table[i] + w * self._table[i + 1]
+
+    def _as_batch(self, observation: ArrayLike) -> tuple[NDArray[np.float64], bool]:
+        dim = int(self.adapter_.obs_dim)
+        try:
+            obs = np.asarray(observation, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"observation must be numbers of shape ({dim},) or (n_envs, {dim})"
+            ) from None
+        single = obs.ndim == 1
+        if obs.ndim not in (1, 2) or obs.shape[-1] != dim or obs.size == 0:
+            raise ValueError(
+                f"observation must have shape ({dim},) or (n_envs, {dim}), got {obs.shape}"
+            )
+        if not np.all(np.isfinite(obs)):
+            raise ValueError("observation contains NaN or inf")
+        return (obs[None] if single else obs), single
 
     # ----------------------------------------------------------------- predict
     def phase(self, observation: ArrayLike) -> NDArray[np.float64] | float:
-        """Normalised time ``t / duration`` of an observation (``(OBS_DIM,)`` -> float,
-        ``(n, OBS_DIM)`` -> ``(n,)``), clipped to ``[0, 1]``; without the lookahead."""
+        """Normalised time ``t / duration`` of an observation (``(obs_dim,)`` -> float,
+        ``(n, obs_dim)`` -> ``(n,)``), clipped to ``[0, 1]``; without the lookahead or waiting.
+        Needs an adapter whose observation has a clock."""
         self._check_fitted()
-        obs = np.asarray(observation, dtype=float)
-        t = obs[..., self._obs_slices["time"]][..., 0]
+        obs, single = self._as_batch(observation)
+        t = self.adapter_.read(obs).time
+        if t is None:
+            raise ValueError("this adapter's observation has no time; the phase is in the state")
         s = np.clip(t / self.duration_, 0.0, 1.0)
-        return float(s) if obs.ndim == 1 else s
+        return float(s[0]) if single else s
 
-    def _step(self, obs: NDArray[np.float64]) -> tuple[Any, ...]:
-        sl = self._obs_slices
-        t = float(obs[sl["time"]][0])
-        s = (t + self.lookahead * self.control_dt_) / self.duration_
-        row = self._row(s)
-        q = obs[sl["joint_pos"]]
-        jm, jv = self._cols[JOINT_FRAME]
-        joint_mean, joint_var = row[jm], row[jv]
-        n_joints = q.shape[0]
-        estimates = []
-        x = J = None
+    def _advance(
+        self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Update the per-environment clock, frame filters and events.
+
+        ``hand``: the grasp point ``(n, d)`` (for the waits before gripper events).
+
+        Returns:
+            ``(clock (n,), aim (n,))``: the task clock, and for rows waiting to reach the target
+            of a gripper event the phase of that event (the motion aims there while the gripper
+            keeps its command), else NaN.
+        """
+        t_obs = observed.time
+        n = len(state)
+        fresh = state.fresh.copy()
+        if t_obs is not None:
+            fresh |= t_obs < state.last_time - 1e-9
+            dt = np.where(fresh, 0.0, t_obs - state.last_time)
+            now = t_obs
+            clock = np.where(fresh, t_obs, state.clock + dt)
+        else:
+            dt = np.where(fresh, 0.0, self.control_dt_)
+            now = np.where(fresh, 0.0, state.last_time + self.control_dt_)
+            clock = np.where(fresh, 0.0, state.clock + dt)
+        self._filter_frames(state, fresh, observed)
+        waited = np.where(fresh, 0.0, state.waited)
+        s = clock / self.duration_
+        hold = np.zeros(n, dtype=bool)
+        aim = np.full(n, np.nan)
+        if self.max_wait > 0:
+            lead = (self.lookahead + 1.0) * self.control_dt_ / self.duration_
+            for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
+                reached = np.where(fresh, False, state.reached.get(j, np.zeros(n, bool)))
+                due = ~reached & (s >= s_l - lead)
+                if np.any(due) and hand is not None:
+                    mcol, vcol = self._cols[frame]
+                    row = self._rows(np.full(n, s_l))
+                    d = hand.shape[1]
+                    target, _ = frame_targets(
+                        state.position[frame],
+                        state.rotation[frame],
+                        row[:, mcol][:, :d],
+                        row[:, vcol][:, :d],
+                    )
+                    # a frame that is loose there (demonstrations disagree) asks for no precision
+                    spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
+                    tol = np.maximum(self.reach_tolerance, 3.0 * spread)
+                    close = np.linalg.norm(hand - target, axis=1) <= tol
+                    reached = reached | (due & close)
+                    hold |= due & ~close
+                    aim = np.where(due & ~close & np.isnan(aim), s_l, aim)
+                state.reached[j] = reached
+            for ev, s_e in self.event_phases_.items():
+                flags = observed.events.get(ev)
+                if flags is None:
+                    continue
+                seen = np.where(fresh, False, state.seen.get(ev, np.zeros(n, bool))) | flags
+                state.seen[ev] = seen
+                hold |= ~seen & (s >= s_e)
+        hold &= (waited + dt <= self.max_wait) & ~fresh
+        state.clock = np.where(hold, clock - dt, clock)
+        state.waited = np.where(hold, waited + dt, waited)
+        state.last_time = now
+        state.fresh = np.zeros(n, dtype=bool)
+        return state.clock, np.where(hold, aim, np.nan)
+
+    def _filter_frames(self, state: PolicyState, fresh: NDArray[np.bool_], observed: Any) -> None:
+        r = self.frame_noise**2
+        q = r / FILTER_WINDOW**2
         for name in self.frame_names_[1:]:
-            origin, R = _frame_from_obs(obs, name, sl)
-            if origin is None:  # footnote 2: object not detected
-                continue
-            mcol, vcol = self._cols[name]
-            m, v = row[mcol], np.maximum(row[vcol], MIN_VARIANCE)
-            if m.shape[0] == 3:
-                estimates.append(FrameEstimate(origin + R @ m, (R * v) @ R.T, (R / v) @ R.T))
-                continue
-            if x is None:
-                x, J = hand_points(self.robot_, q, self.approach_offset)
-            pos = (origin + m.reshape(-1, 3) @ R.T).reshape(-1)
-            cov = np.zeros((m.shape[0], m.shape[0]))
-            prec = np.zeros_like(cov)
-            for b in range(0, m.shape[0], 3):  # block diagonal: R diag(v) R^T per point
-                cov[b : b + 3, b : b + 3] = (R * v[b : b + 3]) @ R.T
-                prec[b : b + 3, b : b + 3] = (R / v[b : b + 3]) @ R.T
-            estimates.append(FrameEstimate(pos, cov, prec))
-        dq, cov = reproduction_step(
-            self.robot_,
+            if name not in observed.frames:
+                raise ValueError(
+                    f"the adapter returned no frame {name!r} (it returned "
+                    f"{sorted(observed.frames)}); the policy needs every frame it was fitted with"
+                )
+            z, R = observed.frames[name]
+            n = len(fresh)
+            valid = observed.valid.get(name)
+            valid = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+            if name not in state.position:
+                state.position[name] = z.copy()
+                state.variance[name] = np.full(n, r)
+                state.rotation[name] = np.array(R, dtype=float)
+                state.outliers[name] = np.zeros(n, dtype=np.int64)
+            pos, var = state.position[name], state.variance[name]
+            out = state.outliers[name]
+            take = fresh | valid
+            if r == 0.0:
+                pos[take] = z[take]
+            else:
+                var_p = var + q
+                nu = z - pos
+                S = var_p + r
+                gate = np.einsum("ij,ij->i", nu, nu) > JUMP_GATE**2 * S * z.shape[1]
+                out = np.where(valid & gate, out + 1, 0)
+                jump = fresh | (valid & gate & (out >= 2))
+                upd = valid & ~gate
+                K = np.where(upd, var_p / S, 0.0)
+                pos += K[:, None] * nu
+                var = np.where(valid & ~jump, np.where(upd, (1.0 - K) * var_p, var_p), var)
+                pos[jump] = z[jump]
+                var = np.where(jump, r, var)
+                out = np.where(jump, 0, out)
+            rot = state.rotation[name]
+            rot[take] = R[take]
+            state.position[name], state.variance[name], state.outliers[name] = pos, var, out
+
+    def _state_for(
+        self, n: int, state: Any, episode_start: ArrayLike | None
+    ) -> tuple[PolicyState, bool]:
+        own = state is None
+        if own:
+            mem = self._memory
+            state = mem if mem is not None and len(mem) == n else PolicyState.new(n)
+        elif not isinstance(state, PolicyState) or len(state) != n:
+            raise ValueError(
+                f"state must be None or the PolicyState predict returned for {n} environments"
+            )
+        if episode_start is not None:
+            starts = np.asarray(episode_start, dtype=bool).reshape(-1)
+            if starts.shape != (n,):
+                raise ValueError(f"episode_start must have {n} entries, got {starts.shape}")
+            state.fresh = state.fresh | starts
+        return state, own
+
+    def _compute(
+        self, observation: ArrayLike, state: Any, episode_start: ArrayLike | None, cov: bool
+    ) -> tuple[Any, ...]:
+        self._check_fitted()
+        obs, single = self._as_batch(observation)
+        n = obs.shape[0]
+        mem, own = self._state_for(n, state, episode_start)
+        observed = self.adapter_.read(obs)
+        q = np.asarray(observed.state, dtype=float)
+        if q.shape != (n, self.robot_.n_joints):
+            raise ValueError(
+                f"the adapter read a state of shape {q.shape}; the robot has "
+                f"{self.robot_.n_joints} coordinates"
+            )
+        x = J = None
+        if len(self.frame_names_) > 1:
+            x, J = hand_points(self.robot_, q, self.approach_offset_)
+        clock, aim = self._advance(mem, observed, None if x is None else x[:, : self.robot_.dim])
+        if own:
+            self._memory = mem
+        s = (clock + self.lookahead * self.control_dt_) / self.duration_
+        row = self._rows(s)
+        k = q.shape[1]
+        jm, jv = self._cols[JOINT_FRAME]
+        grip_row = row
+        if np.any(~np.isnan(aim)):  # waiting to reach a gripper event's target: aim at it
+            row = self._rows(np.where(np.isnan(aim), s, aim))
+        joint_mean, joint_var = row[:, jm], row[:, jv]
+        targets = []
+        if x is not None:
+            for name in self.frame_names_[1:]:
+                mcol, vcol = self._cols[name]
+                targets.append(
+                    frame_targets(
+                        mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol]
+                    )
+                )
+        dq, fused = reproduction_step(
             q,
-            joint_mean[:n_joints],
-            joint_var[:n_joints],
-            estimates,
+            joint_mean[:, :k],
+            joint_var[:, :k],
+            x,
+            J,
+            targets,
             alpha=self.alpha,
             null_space_std=self.null_space_std,
             damping=DEFAULT_DAMPING,
             ridge=DEFAULT_RIDGE,
-            ee_pos=x,
-            jacobian=J,
+            return_cov=cov,
         )
-        gripper = float(joint_mean[n_joints]) if joint_mean.shape[0] > n_joints else 0.0
-        step = limit_step(dq, self.max_joint_step_)
-        action = self._action_from_targets(q, q + step, gripper)
-        return min(max(s, 0.0), 1.0), action, dq, np.sqrt(np.diag(cov)), gripper, row
+        gripper = grip_row[:, jm][:, k] if joint_mean.shape[1] > k else np.zeros(n)
+        action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
+        return single, mem, np.clip(s, 0.0, 1.0), action, dq, fused, gripper, row
 
     def predict(
         self,
@@ -470,43 +803,35 @@ class GPDemonstrationPolicy:
         """The action for an observation (stable-baselines3 ``PolicyPredictor`` protocol).
 
         Args:
-            observation: ``(OBS_DIM,)`` or ``(n_envs, OBS_DIM)``.
-            state: unused (the policy is time-indexed, not recurrent); returned unchanged.
-            episode_start: unused.
+            observation: ``(obs_dim,)`` or ``(n_envs, obs_dim)``, finite.
+            state: ``None`` (the policy keeps the per-environment memory itself) or the
+                :class:`PolicyState` a previous call returned.
+            episode_start: ``(n_envs,)`` bool, environments that were just reset (needed when the
+                observation has no clock).
             deterministic: unused (the policy follows the GP means; it is always deterministic).
 
         Returns:
-            ``(action, state)`` with ``action`` ``(8,)`` or ``(n_envs, 8)`` float32.
+            ``(action, state)`` with ``action`` ``(a,)`` or ``(n_envs, a)`` float32.
         """
-        self._check_fitted()
-        obs = np.asarray(observation, dtype=float)
-        if obs.ndim == 1:
-            return self._step(obs)[1], state
-        if obs.ndim != 2:
-            raise ValueError(
-                f"observation must be (OBS_DIM,) or (n_envs, OBS_DIM), got {obs.shape}"
-            )
-        return np.stack([self._step(o)[1] for o in obs]), state
+        single, mem, _s, action, *_ = self._compute(observation, state, episode_start, False)
+        return (action[0] if single else action), mem
 
-    def predict_distribution(self, observation: ArrayLike) -> PolicyDistribution:
-        """Phase, action, fused joint increment with its std, and per-frame std (batched).
-
-        Accepts ``(OBS_DIM,)`` or ``(n, OBS_DIM)``; always returns batched arrays (``n = 1``).
-        """
-        self._check_fitted()
-        obs = np.atleast_2d(np.asarray(observation, dtype=float))
-        out = [self._step(o) for o in obs]
-        frame_std = {
-            name: np.stack([np.sqrt(r[5][self._cols[name][1]]) for r in out])
-            for name in self.frame_names_
-        }
+    def predict_distribution(
+        self, observation: ArrayLike, state: Any = None, episode_start: ArrayLike | None = None
+    ) -> PolicyDistribution:
+        """Phase, action, fused increment with its std, and per-frame std (batched; advances the
+        same memory as :meth:`predict`). Accepts ``(obs_dim,)`` or ``(n, obs_dim)``; always
+        returns batched arrays (``n = 1``)."""
+        _single, _mem, s, action, dq, cov, gripper, row = self._compute(
+            observation, state, episode_start, True
+        )
         return PolicyDistribution(
-            phase=np.array([r[0] for r in out]),
-            action=np.stack([r[1] for r in out]),
-            joint_increment=np.stack([r[2] for r in out]),
-            joint_std=np.stack([r[3] for r in out]),
-            gripper=np.array([r[4] for r in out]),
-            frame_std=frame_std,
+            phase=s,
+            action=action,
+            joint_increment=dq,
+            joint_std=np.sqrt(np.diagonal(cov, axis1=1, axis2=2)),
+            gripper=gripper,
+            frame_std={name: np.sqrt(row[:, self._cols[name][1]]) for name in self.frame_names_},
         )
 
     def frame_std(self, phase: ArrayLike) -> dict[str, NDArray[np.float64]]:
@@ -522,23 +847,26 @@ class GPDemonstrationPolicy:
 
     # ------------------------------------------------------------ constraints
     def constraint_report(self, *, ratio: float = 0.5, min_width: float = 0.02) -> dict[str, Any]:
-        """Where each object frame is tight, and whether that matches the demonstrated stages.
+        """Where each object frame is tight, and whether that matches the demonstrated events.
 
         Returns:
             ``{"intervals": [{"frame", "start", "end", "min_std", "label"}...],
-            "stage_phases": {stage: mean phase over demonstrations},
-            "checks": [{"stage", "phase", "expected_frame", "tight", "interval"}...]}``.
+            "stage_phases": {event: mean phase over demonstrations},
+            "checks": [{"stage", "phase", "expected_frame", "tight", "interval"}...]}``; the
+            checks use the adapter's ``expected_tight`` (event -> frame), if it has one.
         """
-        objects = {n: self.std_[n][:, :3] for n in self.frame_names_ if n != JOINT_FRAME}
+        d = self.robot_.dim if hasattr(self, "robot_") else 3
+        objects = {n: self.std_[n][:, :d] for n in self.frame_names_ if n != JOINT_FRAME}
         intervals = intervals_report(objects, self.phase_grid_, ratio=ratio, min_width=min_width)
+        per_demo = list(getattr(self, "stage_phases_", []))
+        names = sorted({k for p in per_demo for k in p})
         phases: dict[str, float | None] = {}
-        for stage in STAGE_NAMES:
-            vals = [
-                p[stage] for p in getattr(self, "stage_phases_", []) if p.get(stage) is not None
-            ]
-            phases[stage] = float(np.mean(vals)) if vals else None
+        for ev in names:
+            vals = [p[ev] for p in per_demo if p.get(ev) is not None]
+            phases[ev] = float(np.mean(vals)) if vals else None
         checks = []
-        for stage, frame in EXPECTED_TIGHT_FRAME.items():
+        expected = getattr(getattr(self, "adapter_", None), "expected_tight", {}) or {}
+        for stage, frame in expected.items():
             s = phases.get(stage)
             if s is None or frame not in objects:
                 continue
@@ -575,17 +903,23 @@ class GPDemonstrationPolicy:
             )
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+        if path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder, not a policy file")
         metadata = {
             "format": FORMAT_NAME,
             "kind": FORMAT_NAME,
             "schema_version": SCHEMA_VERSION,
+            "adapter": str(getattr(self.adapter_, "name", type(self.adapter_).__name__)),
             "params": self.get_params(),
             "frame_names": self.frame_names_,
+            "approach_offset": self.approach_offset_,
             "duration": self.duration_,
             "control_dt": self.control_dt_,
             "n_demos": int(getattr(self, "n_demos_", 0)),
             "alignment": getattr(self, "alignment_", "none"),
             "stage_phases": getattr(self, "stage_phases_", []),
+            "event_phases": self.event_phases_,
+            "landmarks": [[s_l, f] for s_l, f in self.landmarks_],
             "constraints": self.constraints_,
         }
         arrays: dict[str, NDArray[Any]] = {
@@ -596,103 +930,171 @@ class GPDemonstrationPolicy:
             arrays[f"mean__{name}"] = self.mean_[name]
             arrays[f"std__{name}"] = self.std_[name]
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_save_npz(path, arrays, force=overwrite)
         return path
 
     @classmethod
     def load(
-        cls, path: str | os.PathLike[str] | io.BytesIO, robot: Any = None
+        cls,
+        path: str | os.PathLike[str] | io.BytesIO,
+        robot: Any = None,
+        adapter: Any = None,
     ) -> GPDemonstrationPolicy:
-        """Read a policy written by :meth:`save`, validating it.
+        """Read a policy written by :meth:`save`, validating every name and number first.
 
         ``path`` may also be an in-memory file (``io.BytesIO``), e.g. a policy embedded in another
-        file; loading never writes anything.
+        file; loading never writes anything. ``adapter``: needed unless the policy was fitted
+        with a built-in adapter (``"coffee"``).
 
         Raises:
             FileNotFoundError: no such file.
-            PolicyFileError: not a policy file, unsupported schema version, missing or
-                inconsistent arrays (the message names what is wrong).
+            PolicyFileError: not a policy file, unsupported schema version, unknown frames,
+                missing, non-finite or out-of-range values (the message names what is wrong).
         """
-        source: Any = path
-        if isinstance(path, io.BytesIO):
-            path = Path("<embedded policy>")
-        else:
-            path = source = Path(path)
-            if not path.exists():
-                raise FileNotFoundError(f"no policy file at {path}")
+        label, arrays = _read_policy_npz(path)
         try:
-            with np.load(source, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-        except Exception as exc:
-            raise PolicyFileError(f"{path} is not a readable .npz policy file: {exc}") from exc
+            return cls._from_arrays(arrays, robot, adapter)
+        except PolicyFileError as exc:
+            raise PolicyFileError(f"{label}: {exc}") from None
+
+    @classmethod
+    def _from_arrays(
+        cls, arrays: Mapping[str, NDArray[Any]], robot: Any, adapter: Any
+    ) -> GPDemonstrationPolicy:
         if "metadata" not in arrays:
-            raise PolicyFileError(
-                f"{path} has no 'metadata' entry; not a GPDemonstrationPolicy file"
-            )
+            raise PolicyFileError("no 'metadata' entry; not a GPDemonstrationPolicy file")
         try:
-            meta = json.loads(str(arrays["metadata"]))
-        except (json.JSONDecodeError, ValueError) as exc:
-            raise PolicyFileError(f"{path}: metadata is not valid JSON ({exc})") from exc
+            meta = parse_json(str(arrays["metadata"]), where="metadata")
+        except FileFormatError as exc:
+            raise PolicyFileError(str(exc)) from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
             found = meta.get("format") if isinstance(meta, dict) else None
-            raise PolicyFileError(f"{path} is not a GPDemonstrationPolicy file (format {found!r})")
-        if meta.get("schema_version") != SCHEMA_VERSION:
+            raise PolicyFileError(f"not a GPDemonstrationPolicy file (format {found!r})")
+        version = meta.get("schema_version")
+        if version not in _READABLE_VERSIONS or isinstance(version, bool):
             raise PolicyFileError(
-                f"{path}: schema version {meta.get('schema_version')!r} is not supported "
-                f"(this version of lgp_policy reads {SCHEMA_VERSION})"
+                f"schema version {version!r} is not supported (this version of lgp_policy reads "
+                f"{list(_READABLE_VERSIONS)})"
             )
         for key in ("params", "frame_names", "duration", "control_dt"):
             if key not in meta:
-                raise PolicyFileError(f"{path}: metadata lacks {key!r}")
-        grid = arrays.get("phase_grid")
-        if grid is None or grid.ndim != 1 or len(grid) < 2 or not np.all(np.diff(grid) > 0):
-            raise PolicyFileError(f"{path}: 'phase_grid' must be an increasing 1-D array")
-        if not (float(meta["duration"]) > 0 and float(meta["control_dt"]) > 0):
-            raise PolicyFileError(f"{path}: duration and control_dt must be positive")
-        names = list(meta["frame_names"])
-        if not names or names[0] != JOINT_FRAME:
+                raise PolicyFileError(f"metadata lacks {key!r}")
+        try:
+            duration = _finite("duration", meta["duration"], 0.0, MAX_DURATION)
+            control_dt = _finite("control_dt", meta["control_dt"], 0.0, MAX_CONTROL_DT)
+        except ValueError as exc:
+            raise PolicyFileError(str(exc)) from None
+        if control_dt > duration:
+            raise PolicyFileError(f"control_dt {control_dt} exceeds the duration {duration}")
+        if adapter is None:
+            name = meta.get("adapter", "coffee")
+            if not isinstance(name, str):
+                raise PolicyFileError(f"adapter name must be a string, got {name!r}")
+            adapter = _builtin_adapter(name)
+        params = meta["params"]
+        if not isinstance(params, dict):
+            raise PolicyFileError("'params' must be an object")
+        if version == 1:
+            params = {k: v for k, v in params.items() if k != "approach_offset"}
+        try:
+            policy = cls(robot, adapter, **params)
+        except (TypeError, ValueError) as exc:
+            raise PolicyFileError(f"invalid policy parameters ({exc})") from None
+        policy._resolve()
+        names = meta["frame_names"]
+        if (
+            not isinstance(names, list)
+            or not names
+            or names[0] != JOINT_FRAME
+            or not all(isinstance(n, str) for n in names)
+            or len(set(names)) != len(names)
+        ):
             raise PolicyFileError(
-                f"{path}: frame_names must start with {JOINT_FRAME!r}, got {names}"
+                f"frame_names must be distinct names starting with {JOINT_FRAME!r}"
             )
-        mean, std = {}, {}
+        known = tuple(getattr(policy.adapter_, "frame_names", ()))
+        unknown = [n for n in names[1:] if n not in known]
+        if unknown:
+            raise PolicyFileError(f"unknown frames {unknown}; the adapter reads {list(known)}")
+        offset = meta.get("approach_offset", 0.1 if version == 1 else None)
+        if offset is not None:
+            try:
+                offset = _finite("approach_offset", offset, -10.0, 10.0)
+            except ValueError as exc:
+                raise PolicyFileError(str(exc)) from None
+            if not policy.robot_.has_orientation:
+                raise PolicyFileError("approach_offset needs a robot with a hand orientation")
+        grid = np.asarray(arrays.get("phase_grid", np.zeros(0)))
+        if (
+            grid.dtype.kind != "f"
+            or grid.ndim != 1
+            or not 2 <= len(grid) <= MAX_GRID
+            or not np.all(np.isfinite(grid))
+            or not np.all(np.diff(grid) > 0)
+            or grid[0] < 0.0
+            or grid[-1] > 1.0
+        ):
+            raise PolicyFileError("'phase_grid' must be an increasing 1-D float array in [0, 1]")
+        k = policy.robot_.n_joints + (policy.gripper_ is not None)
+        d = policy.robot_.dim * (2 if offset is not None else 1)
+        mean: dict[str, NDArray[np.float64]] = {}
+        std: dict[str, NDArray[np.float64]] = {}
         for name in names:
+            want = k if name == JOINT_FRAME else d
             for kind, store in (("mean", mean), ("std", std)):
                 key = f"{kind}__{name}"
                 if key not in arrays:
-                    raise PolicyFileError(f"{path}: missing array {key!r}")
-                a = np.asarray(arrays[key], dtype=float)
-                if a.ndim != 2 or a.shape[0] != len(grid):
+                    raise PolicyFileError(f"missing array {key!r}")
+                a = np.asarray(arrays[key])
+                if a.dtype.kind != "f" or a.shape != (len(grid), want):
                     raise PolicyFileError(
-                        f"{path}: {key!r} has shape {a.shape}, expected ({len(grid)}, n_dims)"
+                        f"{key!r} has shape {a.shape} ({a.dtype}), expected ({len(grid)}, {want}) "
+                        f"floats"
                     )
-                if not np.all(np.isfinite(a)):
-                    raise PolicyFileError(f"{path}: {key!r} contains NaN or inf")
-                store[name] = a
-            if np.any(std[name] <= 0) or std[name].shape != mean[name].shape:
-                raise PolicyFileError(
-                    f"{path}: {'std__' + name!r} must be positive, shaped like the mean"
-                )
-        params = dict(meta["params"])
-        try:
-            policy = cls(robot, **params)
-        except TypeError as exc:
-            raise PolicyFileError(f"{path}: unknown policy parameters ({exc})") from exc
-        policy.phase_grid_ = np.asarray(grid, dtype=float)
+                if not np.all(np.isfinite(a)) or np.any(np.abs(a) > 1e6):
+                    raise PolicyFileError(f"{key!r} contains NaN, inf or values beyond 1e6")
+                store[name] = a.astype(float)
+            if np.any(std[name] <= 0):
+                raise PolicyFileError(f"'std__{name}' must be positive")
+        events = meta.get("event_phases", {})
+        if not isinstance(events, dict):
+            raise PolicyFileError("'event_phases' must be an object")
+        for ev, s_e in events.items():
+            try:
+                _finite(f"event_phases[{ev!r}]", s_e, 0.0, 1.0, low_open=False)
+            except ValueError as exc:
+                raise PolicyFileError(str(exc)) from None
+        landmarks = meta.get("landmarks", [])
+        if not isinstance(landmarks, list) or not all(
+            isinstance(m, list)
+            and len(m) == 2
+            and isinstance(m[0], (int, float))
+            and not isinstance(m[0], bool)
+            and 0.0 <= m[0] <= 1.0
+            and m[1] in names[1:]
+            for m in landmarks
+        ):
+            raise PolicyFileError("'landmarks' must be a list of [phase in [0, 1], fitted frame]")
+        stage_phases = meta.get("stage_phases", [])
+        if not isinstance(stage_phases, list) or not all(
+            isinstance(p, dict)
+            and all(v is None or (isinstance(v, (int, float)) and 0 <= v <= 1) for v in p.values())
+            for p in stage_phases
+        ):
+            raise PolicyFileError("'stage_phases' must be a list of {event: phase in [0, 1]}")
+        policy.approach_offset_ = offset
+        policy.phase_grid_ = grid.astype(float)
         policy.mean_, policy.std_ = mean, std
-        policy.frame_names_ = names
-        policy.duration_ = float(meta["duration"])
-        policy.control_dt_ = float(meta["control_dt"])
-        policy.n_demos_ = int(meta.get("n_demos", 0))
-        policy.alignment_ = str(meta.get("alignment", "none"))
-        policy.stage_phases_ = list(meta.get("stage_phases", []))
-        policy.constraints_ = meta.get("constraints") or policy.constraint_report()
+        policy.frame_names_ = list(names)
+        policy.duration_ = duration
+        policy.control_dt_ = control_dt
+        policy.event_phases_ = {str(k): float(v) for k, v in events.items()}
+        policy.landmarks_ = [(float(m[0]), str(m[1])) for m in landmarks]
+        n_demos = meta.get("n_demos", 0)
+        policy.n_demos_ = int(n_demos) if isinstance(n_demos, int) and n_demos >= 0 else 0
+        policy.alignment_ = str(meta.get("alignment", "none"))[:200]
+        policy.stage_phases_ = stage_phases
+        policy.constraints_ = policy.constraint_report()
         policy._build_table()
         return policy
 
@@ -701,40 +1103,35 @@ class GPDemonstrationPolicy:
         return f"GPDemonstrationPolicy(model={self.model!r}, alpha={self.alpha}{fitted})"
 
 
-def hand_points(
-    robot: Any, q: NDArray[np.float64], offset: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The grasp point and a point ``offset`` behind it on the hand's approach (z) axis, stacked
-    ``(6,)``, and their Jacobian ``(6, k)``.
-
-    With ``p`` the grasp point, ``z`` the approach axis and ``omega_i`` the angular-velocity
-    column ``i`` of the geometric Jacobian: ``d(p - offset z)/dq_i = J_p[:, i] - offset
-    (omega_i x z)``.
-    """
-    p, R = robot.forward_pose(q)
-    J6 = np.asarray(robot.jacobian(q), dtype=float)
-    z = np.asarray(R, dtype=float)[:, 2]
-    Jp, Jw = J6[:3], J6[3:]
-    cross = np.empty_like(Jw)  # omega_i x z for every column i
-    cross[0] = Jw[1] * z[2] - Jw[2] * z[1]
-    cross[1] = Jw[2] * z[0] - Jw[0] * z[2]
-    cross[2] = Jw[0] * z[1] - Jw[1] * z[0]
-    J2 = Jp - offset * cross
-    return np.concatenate([p, p - offset * z]), np.vstack([Jp, J2])
+_SCHEMA = {
+    "metadata": MemberSpec(dtype="U", ndim=0, max_bytes=16 * 2**20),
+    "phase_grid": MemberSpec(dtype="f", ndim=1, finite=True),
+    "mean__*": MemberSpec(dtype="f", ndim=2, finite=True),
+    "std__*": MemberSpec(dtype="f", ndim=2, finite=True),
+}
+MAX_MEMBER_BYTES = 64 * 2**20
+MAX_FILE_BYTES = 512 * 2**20
 
 
-def _obs_slices() -> dict[str, slice]:
-    from gym_coffee.env import OBS_SLICES
-
-    return dict(OBS_SLICES)
-
-
-def _frame_from_obs(
-    obs: NDArray[np.float64], name: str, sl: Mapping[str, slice]
-) -> tuple[NDArray[np.float64] | None, NDArray[np.float64]]:
-    """The object frame ``gym_coffee.env.object_frames`` builds, for one object (fast path)."""
-    if name == "cup":
-        return obs[sl["cup_init_pos"]], np.eye(3)
-    if name == "machine":
-        return obs[sl["machine_pos"]], _rot_z(np.asarray(obs[sl["machine_yaw"]][0]))
-    return None, np.eye(3)
+def _read_policy_npz(path: str | os.PathLike[str] | io.BytesIO) -> tuple[str, dict[str, Any]]:
+    """The arrays of a policy file, through :func:`lgp_policy._io.read_npz` (known members only,
+    sizes checked before decompressing, never unpickled; a path or an in-memory file)."""
+    if isinstance(path, io.BytesIO):
+        label = "<embedded policy>"
+        source: Any = path
+    else:
+        source = Path(path)
+        label = str(source)
+        if not source.exists():
+            raise FileNotFoundError(f"no policy file at {source}")
+    try:
+        arrays = read_npz(
+            source,
+            schema=_SCHEMA,
+            max_member_bytes=MAX_MEMBER_BYTES,
+            max_total_bytes=MAX_FILE_BYTES,
+            max_entries=1000,
+        )
+    except FileFormatError as exc:
+        raise PolicyFileError(f"{label} is not a readable policy file: {exc}") from None
+    return label, arrays

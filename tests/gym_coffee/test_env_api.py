@@ -426,3 +426,26 @@ def test_usable_after_close(env_id):
         np.testing.assert_array_equal(again, _random_episode(fresh, seed=4, n_steps=10))
     finally:
         fresh.close()
+
+
+def test_no_visual_meshes_unless_rendering_and_the_same_episodes():
+    """Without a render mode the world is built without visual meshes (the fast reset; PyBullet
+    then shows the collision meshes); the
+    physics is the same bit for bit as in a rendering env, for a contact-rich teacher episode
+    in a reused env."""
+    plain = make(gym_coffee.ENV_ID)
+    rendering = make(gym_coffee.ENV_ID, render_mode="rgb_array")
+    try:
+        for env, expected in [(plain, False), (rendering, True)]:
+            sim = env.unwrapped.sim
+            env.reset(seed=0)
+            files = [shape[4] for shape in sim.p.getVisualShapeData(sim.bodies["panda"])]
+            has_visual_meshes = any(b"/visual/" in name for name in files)
+            assert sim.visual_shapes is expected and has_visual_meshes is expected
+        _teacher_episode(plain, seed=3)
+        got, info = _teacher_episode(plain, seed=8)
+        assert info["is_success"]
+        np.testing.assert_array_equal(got, _teacher_episode(rendering, seed=8)[0])
+    finally:
+        plain.close()
+        rendering.close()

@@ -1,37 +1,55 @@
-"""The whole pipeline from the command line: ``gym-coffee run``, then ``fit`` and ``evaluate``
-on its files (2 demonstrations, 2 evaluation episodes)."""
+"""The whole pipeline from the command line: ``gym-coffee run`` (2 demonstrations, 2 evaluation
+layouts), each layout rolled out once, then ``evaluate`` on its policy in 2 workers; and a run
+interrupted after the evaluation keeps what finished."""
 
 from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
 pytest.importorskip("gym_coffee.teacher")
 
+from lgp_policy import rollout
+from lgp_policy.app import backends, evaluation, pipeline, plots
 from lgp_policy.app.cli import main
 from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
 
-def test_run_fit_evaluate(tmp_path, capsys):
+def _count_episodes(monkeypatch) -> list[int]:
+    """Patch the one episode loop wherever it is imported; return the list of seeds rolled out."""
+    seeds: list[int] = []
+    real = rollout.run_episode
+
+    def counted(policy, env, seed, **kwargs):
+        seeds.append(int(seed))
+        return real(policy, env, seed, **kwargs)
+
+    for module in (backends, evaluation):
+        monkeypatch.setattr(module, "run_episode", counted)
+    monkeypatch.setattr(rollout, "run_episode", counted)
+    return seeds
+
+
+def test_run_then_evaluate(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
+    real_run_episode = rollout.run_episode
+    seeds = _count_episodes(monkeypatch)
     assert main(["run", "--out", str(out), "--demos", "2", "--episodes", "2", "--seed", "3"]) == 0
+    monkeypatch.setattr(rollout, "run_episode", real_run_episode)
     printed = capsys.readouterr().out
     assert "button_pressed" in printed and "Wilson" in printed
+    for i, (name, _) in enumerate(pipeline.PIPELINE_STAGES, 1):
+        assert f"[{i}/5] {name}:" in printed
     results = json.loads((out / "results.json").read_text())
+    assert results["status"] == "complete"
+    assert results["done"] == [name for name, _ in pipeline.PIPELINE_STAGES]
+    assert set(results["timings"]) == set(results["done"]) | {"total"}
     assert results["evaluation"]["n_episodes"] == 2
+    assert sorted(seeds) == results["evaluation"]["seeds"]  # each layout rolled out once
     assert results["demonstrations"]["n"] == 2
     assert set(results["evaluation"]["stages"]) >= {"cup_grasped", "cup_placed", "button_pressed"}
-    for name in (
-        "policy.npz",
-        "demonstrations.npz",
-        "fig1_heteroscedastic.png",
-        "fig2_clustering.png",
-        "fig4_constraints.png",
-        "fig5_reproduction.png",
-        "rollout.gif",
-    ):
+    for name in pipeline.RUN_FILES:
         assert (out / name).stat().st_size > 0, name
     # the constraint report agrees with the demonstrated stages: cup tight at the grasp,
     # machine tight at the place and the press
@@ -40,31 +58,37 @@ def test_run_fit_evaluate(tmp_path, capsys):
     assert all(c["tight"] for c in checks.values()), checks
     policy = GPDemonstrationPolicy.load(out / "policy.npz")
     assert policy.constraints_ == results["constraints"]
-
-    refit = tmp_path / "refit.npz"
-    assert main(["fit", str(out / "demonstrations.npz"), "--out", str(refit)]) == 0
-    assert main(["fit", str(out / "demonstrations.npz"), "--out", str(refit)]) == 2  # no overwrite
-    a = GPDemonstrationPolicy.load(refit)
-    np.testing.assert_allclose(a.mean_["joint"], policy.mean_["joint"], atol=1e-8)
+    # the Fig. 5 trace from the evaluation roll-out is the one a fresh roll-out gives
+    fresh = plots.rollout_trace(policy, results["evaluation"]["seeds"][0])
+    assert len(fresh["phase"]) == results["evaluation"]["episodes"][0]["length"]
 
     js = tmp_path / "eval.json"
-    assert (
-        main(
-            [
-                "evaluate",
-                str(refit),
-                "--episodes",
-                "2",
-                "--seed",
-                "3",
-                "--workers",
-                "2",
-                "--json",
-                str(js),
-                "--no-progress",
-            ]
-        )
-        == 0
-    )
+    argv = ["evaluate", str(out / "policy.npz"), "--episodes", "2", "--seed", "3"]
+    assert main([*argv, "--workers", "2", "--json", str(js), "--no-progress"]) == 0
     again = json.loads(js.read_text())
     assert again["episodes"] == results["evaluation"]["episodes"]
+
+
+def test_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plots, "make_all", interrupt)
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run_pipeline(
+            out,
+            n_demos=1,
+            n_episodes=1,
+            seed=5,
+            video=False,
+            policy_kwargs={"model": "empirical"},
+            progress=False,
+        )
+    results = json.loads((out / "results.json").read_text())
+    assert results["status"] == "interrupted" and results["interrupted_in"] == "plots"
+    assert results["done"] == ["record", "fit", "evaluate"]
+    assert results["evaluation"]["n_episodes"] == 1
+    assert (out / "policy.npz").exists() and not (out / "rollout.gif").exists()
+    with pytest.raises(FileExistsError, match="force"):  # a second run never mixes into it
+        pipeline.run_pipeline(out, n_demos=1, n_episodes=1, progress=False)

@@ -41,14 +41,16 @@ def _rollout(policy, env, seed):
     return np.asarray(joints, dtype=float), reached, bool(info["is_success"])
 
 
-def _check_shapes(policy, demo):
+def _check_shapes(policy, demo, *, stateless=True):
     obs = demo.observations
-    action, state = policy.predict(obs[0], state="s")
-    assert action.shape == (8,) and action.dtype == np.float32 and state == "s"
+    action, state = policy.predict(obs[0])
+    assert action.shape == (8,) and action.dtype == np.float32
     batch, _ = policy.predict(obs[:5])
     assert batch.shape == (5, 8) and batch.dtype == np.float32
     assert np.all(np.abs(batch) <= 1.0)
-    np.testing.assert_array_equal(batch[0], action)  # a batch row = the single prediction
+    if stateless:  # the replays keep no state: a batch row = the single prediction
+        assert state is None and policy.predict(obs[0], state="s")[1] == "s"
+        np.testing.assert_array_equal(batch[0], action)
 
 
 def test_nearest_replay_repeats_its_demonstration(env, demos):
@@ -65,14 +67,13 @@ def test_nearest_replay_repeats_its_demonstration(env, demos):
 
 def test_object_relative_replay_on_its_layout(env, demos):
     policy = ObjectRelativeReplay(demo_index=1).fit(demos)
-    assert policy.seed_ == demos[1].seed
     _check_shapes(policy, demos[1])
     demo = demos[1]
     # The target path on the demonstration's own layout is the demonstration's hand path.
     from lgp_policy.lfd.policy import hand_points
 
     for k in (0, demo.n_steps // 2, demo.n_steps - 1):
-        expected = hand_points(policy.robot_, demo.joint_pos[k], policy.approach_offset)[0]
+        expected = hand_points(policy.adapter_.robot, demo.joint_pos[k], policy.approach_offset)[0]
         got = policy.target(demo.observations[k], t=demo.time[k])
         np.testing.assert_allclose(got, expected, atol=1e-4)  # float32 observations
     joints, reached, success = _rollout(policy, env, demo.seed)
@@ -97,7 +98,7 @@ def test_promp_policy_fits_and_predicts(demos):
     data = policy.encoder_.data_["joint"].mean(axis=0)
     grid = np.interp(policy.encoder_.phase_, policy.phase_grid_, policy.mean_["joint"][:, 0])
     assert np.max(np.abs(grid - data[:, 0])) < 0.1
-    _check_shapes(policy, demos[0])
+    _check_shapes(policy, demos[0], stateless=False)
     with pytest.raises(TypeError, match="model"):
         ProMPPolicy(model="local")
 
@@ -115,5 +116,7 @@ def test_bad_input(cls, demos):
 def test_object_relative_replay_arguments(demos):
     with pytest.raises(ValueError, match="demo_index"):
         ObjectRelativeReplay(demo_index=5).fit(demos)
-    with pytest.raises(ValueError, match="switch"):
-        ObjectRelativeReplay(switch="never").fit(demos)
+    with pytest.raises(ValueError, match="switch_event"):
+        ObjectRelativeReplay(switch_event="never").fit(demos)
+    with pytest.raises(ValueError, match="frames"):
+        ObjectRelativeReplay(frames=("cup", "table")).fit(demos)

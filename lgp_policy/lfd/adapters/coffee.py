@@ -1,0 +1,231 @@
+"""The gym-coffee task as one adapter, the only module of :mod:`lgp_policy.lfd` that imports
+``gym_coffee``.
+
+* :class:`PandaModel`: the coffee env's Panda (``gym_coffee.kinematics.PandaKinematics``) as a
+  batched :class:`~lgp_policy.lfd.robots.RobotModel` (7 joints, 3-D, the grasp point);
+* :class:`CoffeeAdapter`: reads the env's observation (``gym_coffee.env.OBS_SLICES``): time, the
+  7 arm joints, frames ``cup`` (at the cup's base, identity rotation: the cup is symmetric) and
+  ``machine`` (footprint centre, ``Rz(machine_yaw)``), and the event ``cup_held``; actions are
+  joint deltas plus the gripper (``gym_coffee.robot.action_from_targets``'s scaling);
+* :func:`to_trajectories`: ``gym_coffee.demonstrations.DemonstrationSet`` ->
+  :class:`~lgp_policy.lfd.demonstrations.TrajectorySet` (the gripper command comes from the
+  action's gripper entry, ``cup_held`` from the recorded observations).
+
+Online use of the cup (issue 11): the ``cup`` frame is the cup's *current* observed position until
+the gripper holds it (``valid["cup"]`` is then false, and the policy freezes its last estimate);
+the policy filters the observed positions over time (``frame_noise``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+import gym_coffee
+from gym_coffee import kinematics as _kin
+from gym_coffee.env import OBS_DIM, OBS_SLICES
+from gym_coffee.robot import GRIPPER_MAX_OPENING, MAX_JOINT_STEP
+from gym_coffee.scene import CUP_HEIGHT
+from lgp_policy.lfd.adapters import Observed, rotation_from_angle
+from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
+from lgp_policy.lfd.robots import GripperSpec, JointDeltaAction
+
+__all__ = [
+    "HELD_DISTANCE",
+    "CoffeeAdapter",
+    "PandaModel",
+    "cup_held",
+    "to_trajectories",
+]
+
+#: m; the cup counts as held when the grasp point is this close to the cup's middle and the
+#: fingers are neither open nor shut (they rest on the cup's 6 cm body).
+HELD_DISTANCE = 0.03
+_HELD_OPENING = (0.04, 0.075)
+_CONTROL_DT = 0.04
+
+
+class PandaModel:
+    """The coffee env's Panda as a batched ``RobotModel`` (grasp point, world frame).
+
+    One state ``(7,)`` goes through ``PandaKinematics`` (a plain-float chain, fastest for one);
+    a batch ``(n, 7)`` through the same chain written with ``(n, 3, 3)`` matrices.
+    """
+
+    dim = 3
+    n_joints = 7
+    has_orientation = True
+
+    def __init__(self, base_position: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+        self._one = _kin.PandaKinematics(base_position)
+        self.base_position = self._one.base_position
+        self.joint_lower = self._one.joint_lower
+        self.joint_upper = self._one.joint_upper
+        roll = _kin._JOINT_ROLL
+        self._xyz = _kin._JOINT_XYZ
+        self._rx = Rotation.from_euler("x", roll[:, None]).as_matrix()
+        self._hand = Rotation.from_euler("z", _kin._HAND_YAW).as_matrix()
+
+    def _chain(self, q: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        n = q.shape[0]
+        R = np.broadcast_to(np.eye(3), (n, 3, 3))
+        p = np.broadcast_to(self.base_position, (n, 3)).copy()
+        c, s = np.cos(q), np.sin(q)
+        axes = np.empty((n, 7, 3))
+        origins = np.empty((n, 7, 3))
+        for i in range(7):
+            p = p + R @ self._xyz[i]
+            Rz = np.zeros((n, 3, 3))
+            Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = (
+                c[:, i],
+                -s[:, i],
+                s[:, i],
+                c[:, i],
+                1.0,
+            )
+            R = (R @ self._rx[i]) @ Rz
+            axes[:, i] = R[:, :, 2]
+            origins[:, i] = p
+        ee = p + _kin.GRASP_OFFSET * R[:, :, 2]
+        return ee, R @ self._hand, axes, origins
+
+    def forward_pose(self, q: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        q = np.asarray(q, dtype=float)
+        if q.ndim == 1:
+            return self._one.forward_pose(q)
+        ee, R, _, _ = self._chain(q.reshape(-1, 7))
+        return ee.reshape(*q.shape[:-1], 3), R.reshape(*q.shape[:-1], 3, 3)
+
+    def jacobian(self, q: ArrayLike) -> NDArray[np.float64]:
+        q = np.asarray(q, dtype=float)
+        if q.ndim == 1:
+            return self._one.jacobian(q)
+        ee, _, axes, origins = self._chain(q.reshape(-1, 7))
+        Jp = np.cross(axes, ee[:, None, :] - origins)  # z_i x (p_ee - p_i), (n, 7, 3)
+        J = np.concatenate([Jp, axes], axis=2).transpose(0, 2, 1)
+        return J.reshape(*q.shape[:-1], 6, 7)
+
+    def pose_and_jacobian(
+        self, q: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """``forward_pose`` and ``jacobian`` of a batch ``(n, 7)`` in one pass of the chain."""
+        if q.shape[0] == 1:
+            p, R = self._one.forward_pose(q[0])
+            return p[None], R[None], self._one.jacobian(q[0])[None]
+        ee, R, axes, origins = self._chain(q)
+        Jp = np.cross(axes, ee[:, None, :] - origins)
+        return ee, R, np.concatenate([Jp, axes], axis=2).transpose(0, 2, 1)
+
+    def __repr__(self) -> str:
+        return f"PandaModel(base_position={self.base_position.tolist()})"
+
+
+def cup_held(observation: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Whether the gripper holds the cup, per row of ``(n, OBS_DIM)`` observations: the grasp
+    point within :data:`HELD_DISTANCE` of the cup's middle, fingers resting on the cup."""
+    obs = np.asarray(observation, dtype=float)
+    middle = obs[:, OBS_SLICES["cup_pos"]] + np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
+    near = np.linalg.norm(obs[:, OBS_SLICES["ee_pos"]] - middle, axis=1) < HELD_DISTANCE
+    g = obs[:, OBS_SLICES["gripper"]][:, 0]
+    return near & (g > _HELD_OPENING[0]) & (g < _HELD_OPENING[1])
+
+
+class CoffeeAdapter:
+    """Reads gym-coffee observations for :class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy`.
+
+    Args:
+        track_cup: ``True`` (default): the ``cup`` frame follows the cup's observed position until
+            the gripper holds it; ``False``: the cup's pose at reset (``cup_init_pos``, the paper).
+    """
+
+    name = "coffee"
+    obs_dim = OBS_DIM
+    frame_names = ("cup", "machine")
+    control_dt = _CONTROL_DT
+    gripper = GripperSpec(closed=0.0, open=GRIPPER_MAX_OPENING)
+    #: Which frame should be tight when each stage is first reached (the paper's Fig. 4; the
+    #: policy's constraint check).
+    expected_tight: ClassVar[dict[str, str]] = {
+        "cup_grasped": "cup",
+        "cup_placed": "machine",
+        "button_pressed": "machine",
+    }
+
+    def __init__(self, *, track_cup: bool = True) -> None:
+        self.track_cup = bool(track_cup)
+        self.robot = PandaModel()
+        self.action_map = JointDeltaAction(MAX_JOINT_STEP, self.gripper)
+
+    def read(self, observation: NDArray[np.float64]) -> Observed:
+        obs = observation
+        held = cup_held(obs)
+        cup = obs[:, OBS_SLICES["cup_pos" if self.track_cup else "cup_init_pos"]]
+        n = obs.shape[0]
+        return Observed(
+            time=obs[:, OBS_SLICES["time"]][:, 0],
+            state=obs[:, OBS_SLICES["joint_pos"]],
+            frames={
+                "cup": (cup, np.broadcast_to(np.eye(3), (n, 3, 3))),
+                "machine": (
+                    obs[:, OBS_SLICES["machine_pos"]],
+                    rotation_from_angle(obs[:, OBS_SLICES["machine_yaw"]][:, 0], 3),
+                ),
+            },
+            valid={"cup": ~held} if self.track_cup else {},
+            events={"cup_held": held},
+        )
+
+    @staticmethod
+    def to_trajectories(demos: Iterable[Any]) -> TrajectorySet:
+        """See :func:`to_trajectories`."""
+        return to_trajectories(demos)
+
+    def __repr__(self) -> str:
+        return f"CoffeeAdapter(track_cup={self.track_cup})"
+
+
+def _machine_rotation(quat: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The machine's rotation about z only (its yaw), as the observation reports it."""
+    yaw = Rotation.from_quat(quat).as_euler("ZYX")[:, 0]
+    return rotation_from_angle(yaw, 3)
+
+
+def to_trajectories(demos: Iterable[Any]) -> TrajectorySet:
+    """Convert gym-coffee demonstrations (``DemonstrationSet`` or a sequence of
+    ``Demonstration``) into a :class:`TrajectorySet`.
+
+    State: the 7 arm joints; gripper: the commanded opening (m) from the action's gripper entry;
+    frames: ``cup`` (position, identity) and ``machine`` (position, yaw); events: the env's stage
+    flags (``gym_coffee.STAGES``) and ``cup_held`` (from the recorded observations); the
+    ``success`` flag is kept.
+    """
+    items = list(demos)
+    out = []
+    for d in items:
+        actions = np.asarray(d.actions, dtype=float)
+        stages = np.asarray(d.stages, dtype=bool)
+        events = {name: stages[:, j] for j, name in enumerate(gym_coffee.STAGES[: stages.shape[1]])}
+        events["cup_held"] = cup_held(np.asarray(d.observations, dtype=float))
+        out.append(
+            Trajectory(
+                time=d.time,
+                state=d.joint_pos,
+                gripper=(actions[:, 7] + 1.0) / 2.0 * GRIPPER_MAX_OPENING,
+                actions=actions,
+                frames={
+                    "cup": (d.object_pos["cup"], np.eye(3)),
+                    "machine": (
+                        d.object_pos["machine"],
+                        _machine_rotation(d.object_quat["machine"]),
+                    ),
+                },
+                events=events,
+                success=d.success,
+            )
+        )
+    meta = dict(getattr(demos, "metadata", {}) or {})
+    return TrajectorySet(out, meta)
