@@ -403,6 +403,11 @@ class SpaceMouseInput:
         self.keyboard = KeyboardInput(speed=speed)
         self._button_was = False
 
+    @property
+    def show_help(self) -> bool:
+        """Whether the overlay shows the keys (``h`` toggles it)."""
+        return bool(self.keyboard.show_help)
+
     def start_episode(self, env: Any, obs: NDArray[np.float32]) -> None:
         self.keyboard.start_episode(env, obs)
 
@@ -441,7 +446,13 @@ class SpaceMouseInput:
 
 
 class _Overlay:
-    """Help text and a stage/success line in the PyBullet GUI (nothing in DIRECT mode)."""
+    """Help text and a stage/success line in the PyBullet GUI (nothing in DIRECT mode).
+
+    PyBullet has no screen-space text: the lines are placed in the world, in the upper left of
+    the GUI camera's view (from ``getDebugVisualizerCamera``), and replaced only when they
+    change."""
+
+    LINE = 0.045  # line spacing at the camera distance 1.5 m (scaled with the distance)
 
     def __init__(self, env: Any, device: Any) -> None:
         sim = env.unwrapped.sim
@@ -449,27 +460,49 @@ class _Overlay:
         self.enabled = bool(getattr(sim, "gui", False))
         self.device = device
         self._ids: dict[str, int] = {}
-
-    def _text(self, key: str, text: str, position: Sequence[float], color: Sequence[float]) -> None:
-        kwargs: dict[str, Any] = {"textColorRGB": list(color), "textSize": 1.2}
-        if key in self._ids:
-            kwargs["replaceItemUniqueId"] = self._ids[key]
-        self._ids[key] = self.client.addUserDebugText(text, list(position), **kwargs)
+        self._shown: dict[str, str] = {}
+        self._origin = np.zeros(3)
+        self._right = np.array([1.0, 0.0, 0.0])
+        self._up = np.array([0.0, 0.0, 1.0])
+        self._scale = 1.0
 
     def reset(self) -> None:
-        self._ids = {}  # the env's reset rebuilt the world and removed the old items
+        """Forget the items (the env's reset rebuilt the world) and anchor to the camera."""
+        self._ids, self._shown = {}, {}
+        if not self.enabled:
+            return
+        cam = self.client.getDebugVisualizerCamera()
+        horizontal, vertical = np.asarray(cam[6], float), np.asarray(cam[7], float)
+        if np.linalg.norm(horizontal) > 0 and np.linalg.norm(vertical) > 0:
+            self._right = horizontal / np.linalg.norm(horizontal)
+            self._up = vertical / np.linalg.norm(vertical)
+        self._scale = float(cam[10]) / 1.5 if cam[10] else 1.0
+        self._origin = np.asarray(cam[11], float)
+
+    def _position(self, row: int) -> list[float]:
+        s = self._scale
+        point = self._origin + s * (0.6 - self.LINE * row) * self._up - s * 0.8 * self._right
+        return [float(v) for v in point]
+
+    def _text(self, key: str, row: int, text: str, color: Sequence[float]) -> None:
+        if self._shown.get(key) == text:
+            return
+        kwargs: dict[str, Any] = {"textColorRGB": list(color), "textSize": 1.1}
+        if key in self._ids and self._ids[key] >= 0:
+            kwargs["replaceItemUniqueId"] = self._ids[key]
+        self._ids[key] = self.client.addUserDebugText(text, self._position(row), **kwargs)
+        self._shown[key] = text
 
     def draw(self, info: dict[str, Any], status: str) -> None:
         if not self.enabled:
             return
         flags = "   ".join(f"{'[x]' if info.get(s) else '[ ]'} {s}" for s in STAGES)
-        success = "SUCCESS" if info.get("is_success") else ""
-        self._text("stages", f"{flags}   {success}", (0.0, -0.55, 0.95), (0.1, 0.4, 0.1))
-        self._text("status", status, (0.0, -0.55, 0.9), (0.1, 0.1, 0.5))
-        show = getattr(self.device, "show_help", True) and self.device.name != "scripted"
+        success = "   SUCCESS" if info.get("is_success") else ""
+        self._text("stages", 0, flags + success, (0.05, 0.45, 0.05))
+        self._text("status", 1, status, (0.1, 0.1, 0.5))
+        show = getattr(self.device, "show_help", False)
         for i, (keys, what) in enumerate(KEYBOARD_HELP):
-            text = f"{keys}: {what}" if show else ""
-            self._text(f"help{i}", text, (0.0, -0.55, 0.85 - 0.04 * i), (0.2, 0.2, 0.2))
+            self._text(f"help{i}", 3 + i, f"{keys}: {what}" if show else "", (0.2, 0.2, 0.2))
 
 
 # ------------------------------------------------------------------------------------------------
