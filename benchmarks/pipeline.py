@@ -156,6 +156,16 @@ def speedup(policy_path: Path, n: int) -> dict:
     }
 
 
+def _table(title: str, header: tuple[str, ...], rows: list[tuple]) -> None:
+    """Print a titled Markdown table (first column left-aligned, the others right-aligned)."""
+    print()
+    print(title)
+    print("| " + " | ".join(header) + " |")
+    print("|---|" + "---:|" * (len(header) - 1))
+    for row in rows:
+        print("| " + " | ".join(str(v) for v in row) + " |")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--episodes", type=int, default=50, help="evaluation layouts of the run")
@@ -201,27 +211,31 @@ def main(argv: list[str] | None = None) -> int:
         with threadpool_limits(limits=1, user_api="blas"):
             if args.breakdown > 0:
                 rows = breakdown(out / "policy.npz", args.breakdown)
-                print()
-                print(f"where the evaluation's time goes ({args.breakdown} layouts, this process)")
-                print("| part | CPU s | calls | ms per call |")
-                print("|---|---:|---:|---:|")
-                for name, sec, calls in rows:
-                    print(f"| {name} | {sec:.2f} | {calls} | {1000 * sec / max(calls, 1):.2f} |")
+                _table(
+                    f"where the evaluation's time goes ({args.breakdown} layouts, this process)",
+                    ("part", "CPU s", "calls", "ms per call"),
+                    [
+                        (name, f"{sec:.2f}", calls, f"{1000 * sec / max(calls, 1):.2f}")
+                        for name, sec, calls in rows
+                    ],
+                )
             if args.speedup > 0:
                 r = speedup(out / "policy.npz", args.speedup)
-                print()
-                print(f"parallel evaluation, {args.speedup} layouts (local backend)")
-                print("| quantity | value |")
-                print("|---|---:|")
-                print(f"| records identical, 1 vs 2 workers | {r['identical']} |")
-                print(f"| serial CPU s | {r['serial_cpu']:.1f} |")
                 workers = ", ".join(f"{c:.1f}" for c in r["worker_cpu"])
-                print(f"| 2 workers: CPU s per worker | {workers} |")
-                print(f"| 2 workers: driver CPU s | {r['driver_cpu_2']:.2f} |")
-                print(f"| CPU-normalised speed-up | {r['cpu_speedup']:.2f}x |")
-                print(
-                    f"| wall speed-up (load {os.getloadavg()[0]:.1f}) | "
-                    f"{r['wall_1'] / r['wall_2']:.2f}x |"
+                _table(
+                    f"parallel evaluation, {args.speedup} layouts (local backend)",
+                    ("quantity", "value"),
+                    [
+                        ("records identical, 1 vs 2 workers", r["identical"]),
+                        ("serial CPU s", f"{r['serial_cpu']:.1f}"),
+                        ("2 workers: CPU s per worker", workers),
+                        ("2 workers: driver CPU s", f"{r['driver_cpu_2']:.2f}"),
+                        ("CPU-normalised speed-up", f"{r['cpu_speedup']:.2f}x"),
+                        (
+                            f"wall speed-up (load {os.getloadavg()[0]:.1f})",
+                            f"{r['wall_1'] / r['wall_2']:.2f}x",
+                        ),
+                    ],
                 )
     return 0
 

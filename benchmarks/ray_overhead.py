@@ -8,14 +8,16 @@ Measured in one run, on a local Ray instance with ``--cpus`` CPUs:
    episode loop, BLAS at one thread), mean over ``--episodes`` layouts; ``c_env``: making the env.
 2. ``o``: Ray's per-task overhead for the very task the ``ray`` backend sends
    (``lgp_policy.app.backends._ray_chunk`` with the policy and env factory as object-store
-   references), on warm workers with an empty chunk: (a) the round trip of one task at a time,
-   (b) the wall time per task when ``--tasks`` are in flight at once, times the CPUs (the cost a
-   task adds to a busy cluster), and the driver's CPU seconds per task.
+   references, fetched once per worker), on warm workers with an empty chunk: (a) the round
+   trip of one task at a time, (b) the wall time per task when ``--tasks`` are in flight at
+   once, times the CPUs (the cost a task adds to a busy cluster), and the driver's CPU seconds
+   per task.
 3. The overhead ratio ``o / (k c_ep)`` for ``k`` episodes per task (the ``--chunk-size``), and the
    backend's own records against the local backend on the same seeds (identical).
-4. A simulated scaling curve for ``--sim-episodes`` layouts on 1, 2, 4, ... workers:
-   ``makespan(w) = c_env + ceil(tasks / w) * (k c_ep + o_b)`` with ``tasks = ceil(n / k)`` and
-   ``k`` the backend's default (about 4 tasks per worker), against ``c_env + n c_ep`` serially.
+4. A simulated scaling curve for ``--sim-episodes`` layouts on 1, 2, 4, ... workers: the
+   backend's default chunks (about 4 tasks per worker, sizes differing by at most one), each
+   costing ``k c_ep + o`` (``o`` the larger of 2a and 2b), handed to the worker that is free
+   first after making its env (``c_env``); against ``c_env + n c_ep`` serially.
    It assumes a worker per core and no other limit (the driver and the object store are not
    modelled beyond ``o``); it is arithmetic on measured figures, not a measurement on a cluster.
 
@@ -26,7 +28,7 @@ machine the wall-clock figures (2b) are inflated by the other jobs; the load ave
 from __future__ import annotations
 
 import argparse
-import math
+import heapq
 import os
 import sys
 import time
@@ -52,6 +54,19 @@ def _policy(path: str | None):
     finally:
         env.close()
     return GPDemonstrationPolicy().fit(demos, progress=False)
+
+
+def simulate(n: int, w: int, c_ep: float, c_env: float, o: float) -> tuple[float, list[int]]:
+    """Makespan of ``n`` equal episodes on ``w`` workers with the backend's default chunks
+    (``chunk_seeds``), each task going to the worker that is free first; and the chunk sizes."""
+    from lgp_policy.app.backends import CHUNKS_PER_WORKER, chunk_seeds
+
+    sizes = [len(c) for c in chunk_seeds(range(n), CHUNKS_PER_WORKER * w)]
+    free = [c_env] * w  # every worker makes its env first
+    heapq.heapify(free)
+    for k in sizes:
+        heapq.heappush(free, heapq.heappop(free) + k * c_ep + o)
+    return max(free), sizes
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -95,17 +110,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         remote = ray.remote(num_cpus=1)(backends._ray_chunk)
-        policy_ref, factory_ref = ray.put(policy), ray.put(factory)
+        refs = [ray.put(policy), ray.put(factory)]
         # warm every worker (imports, env made and cached)
-        ray.get(
-            [remote.remote(policy_ref, factory_ref, [], EVAL_FLAGS) for _ in range(4 * args.cpus)]
-        )
+        ray.get([remote.remote(refs, [], EVAL_FLAGS) for _ in range(4 * args.cpus)])
         t = time.perf_counter()
         for _ in range(args.tasks):
-            ray.get(remote.remote(policy_ref, factory_ref, [], EVAL_FLAGS))
+            ray.get(remote.remote(refs, [], EVAL_FLAGS))
         o_latency = (time.perf_counter() - t) / args.tasks
         t, c = time.perf_counter(), time.process_time()
-        ray.get([remote.remote(policy_ref, factory_ref, [], EVAL_FLAGS) for _ in range(args.tasks)])
+        ray.get([remote.remote(refs, [], EVAL_FLAGS) for _ in range(args.tasks)])
         o_busy = (time.perf_counter() - t) / args.tasks * args.cpus
         o_driver = (time.process_time() - c) / args.tasks
 
@@ -144,13 +157,11 @@ def main(argv: list[str] | None = None) -> int:
         print("|---:|---:|---:|---:|---:|---:|")
         serial = c_env + n * c_ep
         w = 1
-        while w <= 1024 and w <= 4 * n:
-            k = math.ceil(n / (backends.CHUNKS_PER_WORKER * w))
-            tasks = math.ceil(n / k)
-            makespan = c_env + math.ceil(tasks / w) * (k * c_ep + o)
+        while w <= min(n, 1024):
+            makespan, sizes = simulate(n, w, c_ep, c_env, o)
             print(
-                f"| {w} | {k} | {tasks} | {makespan:.1f} | {serial / makespan:.1f}x "
-                f"| {serial / makespan / w:.0%} |"
+                f"| {w} | {min(sizes)}-{max(sizes)} | {len(sizes)} | {makespan:.1f} "
+                f"| {serial / makespan:.1f}x | {serial / makespan / w:.0%} |"
             )
             w *= 2
     return 0 if identical else 1

@@ -1,16 +1,18 @@
 """Scripted teacher: success per stage over many seeded layouts, episode length, a video.
 
 Runs :class:`gym_coffee.teacher.ScriptedTeacher` on the layouts of seeds ``--seed`` ...
-``--seed + --seeds - 1`` through :func:`gym_coffee.collect_demonstrations` (``keep_failed=True``,
-so the same code path as ``gym-coffee record``), and prints, for each stage, the fraction of
-episodes that reached it with a 95% Wilson interval, how the failed episodes ended, and the
-episode length. Target (issue 3): full success >= 95%.
+``--seed + --seeds - 1`` of each difficulty level (``gym_coffee.LEVELS``, ``--levels``) through
+:func:`gym_coffee.collect_demonstrations` (``keep_failed=True``, so the same code path as
+``gym-coffee record``), and prints, for each stage, the fraction of episodes that reached it with
+a 95% Wilson interval, how the failed episodes ended, the episode length and the CPU time.
+Target: full success >= 95% on every level.
 
 ``--video`` replays one successful demonstration in an ``rgb_array`` env and writes it (``.mp4``
 or ``.gif``); ``--frames DIR`` also saves a few PNG stills of it (start, grasp, placed, press, end).
 
 Usage:
-    OMP_NUM_THREADS=1 python benchmarks/teacher.py [--seeds 200] [--video teacher.mp4]
+    OMP_NUM_THREADS=1 python benchmarks/teacher.py [--seeds 200] [--levels easy hard]
+        [--video teacher.mp4]
 """
 
 from __future__ import annotations
@@ -77,7 +79,7 @@ def save_frames(env_id: str, demo: Demonstration, folder: Path) -> list[Path]:
         for t in range(demo.n_steps):
             if t in by_step:
                 path = folder / f"teacher_seed{demo.seed}_{by_step[t]}_t{t}.png"
-                iio.imwrite(path, env.render())
+                iio.imwrite(path, np.asarray(env.render()))
                 paths.append(path)
             if t < demo.n_steps - 1:
                 env.step(demo.actions[t])
@@ -86,36 +88,34 @@ def save_frames(env_id: str, demo: Demonstration, folder: Path) -> list[Path]:
     return paths
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=200, help="number of layouts")
-    parser.add_argument("--seed", type=int, default=0, help="first layout seed")
-    parser.add_argument("--video", type=Path, default=None, help="write one demo (.mp4/.gif)")
-    parser.add_argument("--frames", type=Path, default=None, help="folder for PNG stills")
-    parser.add_argument("--save", type=Path, default=None, help="also save all episodes (.npz)")
-    args = parser.parse_args(argv)
-    env_id = gym_coffee.ENV_IDS[0]
-
+def report(level: str, env_id: str, args: argparse.Namespace) -> tuple[list[Demonstration], float]:
+    """Run the teacher on ``args.seeds`` layouts of ``level``, print its table; the demos and the
+    success rate."""
     env = gym.make(env_id)
     max_steps = env.spec.max_episode_steps if env.spec is not None else None
-    t0 = time.perf_counter()
+    cpu0 = time.process_time()
     try:
         demos = collect_demonstrations(
-            env, n=args.seeds, seed=args.seed, progress=True, keep_failed=True
+            env, n=args.seeds, seed=args.seed, progress=False, keep_failed=True
         )
     finally:
         env.close()
-    wall = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
     n = len(demos)
     if args.save is not None:
-        demos.save(args.save, overwrite=True)
+        demos.save(
+            args.save.with_name(f"{args.save.stem}_{level}{args.save.suffix}"), overwrite=True
+        )
 
     reached = np.array([d.stages.any(axis=0) for d in demos])  # (n, 3) stage ever reached
     success = np.array([d.success for d in demos])
     lengths = np.array([d.n_steps - 1 for d in demos])  # env steps
     dt = float(demos[0].time[1] - demos[0].time[0]) if demos[0].n_steps > 1 else float("nan")
 
-    print(f"\nteacher on {n} layouts (seeds {args.seed}..{args.seed + n - 1}), {wall:.0f} s wall")
+    print(
+        f"\nlevel {level!r} ({env_id}): teacher on {n} layouts (seeds {args.seed}.."
+        f"{args.seed + n - 1}), {cpu:.0f} CPU s"
+    )
     print("| stage | reached | rate | 95% Wilson interval |")
     print("|---|---|---|---|")
     rows = [(name, int(reached[:, i].sum())) for i, name in enumerate(STAGE_NAMES)]
@@ -138,12 +138,45 @@ def main(argv: list[str] | None = None) -> int:
         shown = seeds if len(seeds) <= 20 else [*seeds[:20], "..."]
         print(f"  {what}: {len(seeds)}" + ("" if what == "success" else f" (seeds {shown})"))
     lo, _ = wilson_interval(int(success.sum()), n)
-    rate = success.mean()
+    rate = float(success.mean())
     print(
         f"target full success >= {TARGET_SUCCESS:.0%}: {rate:.1%} -> "
         f"{'met' if rate >= TARGET_SUCCESS else 'MISSED'} (Wilson lower bound {lo:.1%})"
     )
+    return list(demos), rate
 
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, default=200, help="number of layouts per level")
+    parser.add_argument("--seed", type=int, default=0, help="first layout seed")
+    parser.add_argument(
+        "--levels",
+        nargs="+",
+        choices=list(gym_coffee.LEVELS),
+        default=list(gym_coffee.LEVELS),
+        help="difficulty levels (default: all)",
+    )
+    parser.add_argument("--video", type=Path, default=None, help="write one demo (.mp4/.gif)")
+    parser.add_argument("--frames", type=Path, default=None, help="folder for PNG stills")
+    parser.add_argument(
+        "--save", type=Path, default=None, help="also save all episodes (.npz, one per level)"
+    )
+    args = parser.parse_args(argv)
+
+    rates = {}
+    first: tuple[str, list[Demonstration]] | None = None
+    for level in args.levels:
+        env_id = gym_coffee.LEVELS[level]
+        demos, rates[level] = report(level, env_id, args)
+        first = first or (env_id, demos)
+    print("\n| level | teacher success |")
+    print("|---|---|")
+    for level, rate in rates.items():
+        print(f"| {level} | {rate:.1%} |")
+
+    assert first is not None
+    env_id, demos = first
     if args.video is not None or args.frames is not None:
         good = [d for d in demos if d.success] or list(demos)
         demo = good[0]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -12,6 +12,7 @@ from gymnasium.utils import EzPickle
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from gym_coffee import STAGES
 from gym_coffee._checks import check_bool, check_choice, check_int, check_real, check_vector
 from gym_coffee.kinematics import PandaKinematics
 from gym_coffee.robot import (
@@ -33,7 +34,6 @@ from gym_coffee.scene import (
     CUP_UPRIGHT_TILT,
     LEVEL_SPECS,
     MIN_CUP_MACHINE_DISTANCE,
-    PLACE_OFFSET,
     PLACE_TOLERANCE,
     TABLE_TOP_Z,
     TABLE_X,
@@ -133,6 +133,15 @@ def object_frames(obs: NDArray[Any]) -> dict[str, tuple[NDArray[np.float64], NDA
         "cup": (obs_part(obs, "cup_init_pos").copy(), np.eye(3)),
         "machine": (obs_part(obs, "machine_pos").copy(), rot_z(yaw)),
     }
+
+
+class _State(NamedTuple):
+    q: NDArray[np.float64]
+    qd: NDArray[np.float64]
+    gripper: float
+    cup_pos: NDArray[np.float64]
+    cup_quat: NDArray[np.float64]
+    travel: float
 
 
 class CoffeeEnv(gym.Env, EzPickle):
@@ -257,7 +266,8 @@ class CoffeeEnv(gym.Env, EzPickle):
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
     another process). By default (``exact_reset=True``) every reset rebuilds the world
-    (``resetSimulation`` and reload, ~80 ms, no memory growth), so every episode equals a fresh
+    (``resetSimulation`` and reload: ~20 ms, ~80 ms when rendering, which loads the visual meshes;
+    no memory growth), so every episode equals a fresh
     env's with the same seed, whatever ran before: evaluation results do not depend on how episodes
     are spread over workers. ``exact_reset=False`` keeps the bodies loaded and re-poses them (~1 ms,
     no memory growth), but Bullet's broadphase keeps some history (the order of its pair cache), so
@@ -271,14 +281,14 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     With ``gym.vector.AsyncVectorEnv(..., context="spawn")`` or ``"forkserver"`` (Python 3.14's
     default on Linux) the workers are fresh interpreters: make the env with
-    ``gym.make("gym_coffee:gym_coffee/CoffeeTask-v0")`` or ``import gym_coffee`` inside the env
+    ``gym.make("gym_coffee:" + gym_coffee.ENV_ID)`` or ``import gym_coffee`` inside the env
     function, so that the id is registered there.
 
     ## Version History
     * v0: first version.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {
+    metadata: dict[str, Any] = {  # noqa: RUF012  (Gymnasium's class attribute)
         "render_modes": ["human", "rgb_array"],
         "render_fps": round(1.0 / CONTROL_DT),
     }
@@ -387,7 +397,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
-        elif self.exact_reset:  # an empty world, loaded afresh: ~80 ms
+        elif self.exact_reset:  # an empty world, loaded afresh: ~20 ms (~80 ms with visual meshes)
             self.sim.reset_world()
             self._load()
         # Otherwise the bodies stay loaded (removing and reloading single bodies leaked memory in
@@ -405,8 +415,9 @@ class CoffeeEnv(gym.Env, EzPickle):
         q, _ = self.robot.joint_states()
         self._press_origin, self._hand_rotation = self.kinematics.forward_pose(q)
         self._layout_info = layout.as_dict()
-        obs = self._get_obs()
-        info = self._evaluate()[0]
+        state = self._read_state()
+        obs = self._get_obs(state)
+        info = self._evaluate(state)[0]
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -419,13 +430,12 @@ class CoffeeEnv(gym.Env, EzPickle):
             noise = self.np_random.normal(0.0, self.actuation_noise, 7)
             q_target = np.clip(q_target + noise, self.robot.joint_lower, self.robot.joint_upper)
         self.robot.command(q_target, opening)
-        self.scene.apply_spring()
-        self.sim.step(self.scene.enforce_stop)
-        self._n_steps += 1
+        self._simulate()
         if self._push is not None and self._n_steps == self._push[0]:
             self._push_cup(self._push[1])
-        obs = self._get_obs()
-        info, failed = self._evaluate()
+        state = self._read_state()
+        obs = self._get_obs(state)
+        info, failed = self._evaluate(state)
         reward = float(sum(info[f"reward_{name}"] for name in REWARD_TERMS))
         terminated = bool(info["is_success"] or failed)
         if self.render_mode == "human":
@@ -524,9 +534,24 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.scene.load()
         self.robot.reset(NEUTRAL_JOINTS)
 
-    def _get_obs(self) -> NDArray[np.float32]:
+    def _simulate(self) -> None:
+        """One control step of physics with the robot's commands set: the button's spring, its
+        hard stop (checked after every physics step, 2 us each), the clock."""
+        self.scene.apply_spring()
+        self.sim.step(self.scene.enforce_stop)
+        self._n_steps += 1
+
+    def _read_state(self) -> _State:
+        """The simulator's state that observation and evaluation need, read once per step."""
         q, qd = self.robot.joint_states()
         cup_pos, cup_quat = self.scene.cup_pose()
+        return _State(
+            q, qd, self.robot.gripper_opening(), cup_pos, cup_quat, self.scene.button_travel()
+        )
+
+    def _get_obs(self, state: _State | None = None) -> NDArray[np.float32]:
+        state = self._read_state() if state is None else state
+        q, cup_pos = state.q, state.cup_pos
         layout = self.scene.layout
         observed = {
             "cup_pos": cup_pos + self._bias["cup"],
@@ -540,30 +565,31 @@ class CoffeeEnv(gym.Env, EzPickle):
             [
                 [self._n_steps * CONTROL_DT],
                 q,
-                qd,
-                [self.robot.gripper_opening()],
+                state.qd,
+                [state.gripper],
                 self.kinematics.forward_kinematics(q),
                 observed["cup_pos"],
-                cup_quat,
+                state.cup_quat,
                 observed["cup_init_pos"],
                 observed["machine_pos"],
                 [layout.machine_yaw],
-                [self.scene.button_travel()],
+                [state.travel],
             ]
         )
         return np.clip(obs, OBS_LOW, OBS_HIGH).astype(np.float32)
 
-    def _evaluate(self) -> tuple[dict[str, Any], bool]:
+    def _evaluate(self, state: _State | None = None) -> tuple[dict[str, Any], bool]:
         """Stage flags, reward terms and whether the episode failed, from the simulator's state."""
         scene = self.scene
-        cup_pos, cup_quat = scene.cup_pose()
-        tilt = scene.cup_tilt(cup_quat)
-        left, right = scene.finger_contacts()
+        state = self._read_state() if state is None else state
+        cup_pos = state.cup_pos
+        tilt = scene.cup_tilt(state.cup_quat)
+        left, right, touched = scene.robot_cup_contacts()
         held = left and right
         # Grasped (latched): the cup is off the table between both fingers.
         if held and not scene.cup_on_table() and cup_pos[2] > TABLE_TOP_Z + 0.005:
             self._grasped = True
-        place_pos = scene.machine_point(PLACE_OFFSET)
+        place_pos = scene.place_pos
         offset = cup_pos - place_pos
         cup_lin_vel, cup_ang_vel = self.sim.get_base_velocity("cup")
         placed = bool(
@@ -572,11 +598,10 @@ class CoffeeEnv(gym.Env, EzPickle):
             and abs(offset[2]) < 0.01
             and np.linalg.norm(cup_lin_vel) < CUP_REST_SPEED
             and np.linalg.norm(cup_ang_vel) < CUP_REST_ANGULAR_SPEED
-            and not scene.robot_touches_cup()
+            and not touched
         )
-        q, _ = self.robot.joint_states()
-        ee = self.kinematics.forward_kinematics(q)
-        travel = scene.button_travel()
+        ee = self.kinematics.forward_kinematics(state.q)
+        travel = state.travel
         if travel < BUTTON_REST_TRAVEL:
             self._press_origin = ee
         elif travel >= BUTTON_PRESS_TRAVEL and self._pushed_along_axis(ee):
@@ -601,7 +626,7 @@ class CoffeeEnv(gym.Env, EzPickle):
             elif not placed:
                 terms["carry"] = -float(np.linalg.norm(offset))
             else:
-                button = scene.task_points()["button_pos"]
+                button = scene.button_pos
                 terms["press"] = -float(np.linalg.norm(ee - button)) + min(
                     travel / BUTTON_PRESS_TRAVEL, 1.0
                 )
@@ -614,9 +639,7 @@ class CoffeeEnv(gym.Env, EzPickle):
             terms["success"] = 1.0 if success else 0.0
         info: dict[str, Any] = {
             "is_success": success,
-            "cup_grasped": bool(self._grasped),
-            "cup_placed": placed,
-            "button_pressed": bool(self._pressed),
+            **dict(zip(STAGES, (bool(self._grasped), placed, bool(self._pressed)), strict=True)),
             "stage": int(stage),
             "layout": dict(self._layout_info),
         }

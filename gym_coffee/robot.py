@@ -61,7 +61,7 @@ def action_from_targets(
     """The action (8,) that commands joint targets ``q_target`` from measured ``q`` and a gripper
     opening (m).
 
-    Clipped to [-1, 1]; the inverse of the scaling in :meth:`Panda.set_action`. Works on (7,) or
+    Clipped to [-1, 1]; the inverse of the scaling in :meth:`Panda.joint_targets`. Works on (7,) or
     (n, 7) with a scalar or (n,) ``gripper_opening``.
     """
     q = np.asarray(q, dtype=np.float64)

@@ -239,7 +239,16 @@ class CoffeeScene:
 
     def __init__(self, sim: Simulation) -> None:
         self.sim = sim
-        self.layout = Layout(np.array([0.5, -0.15, 0.0]), np.array([0.52, 0.34, 0.0]), np.pi / 2)
+        self._set_layout(
+            Layout(np.array([0.5, -0.15, 0.0]), np.array([0.52, 0.34, 0.0]), np.pi / 2)
+        )
+
+    def _set_layout(self, layout: Layout) -> None:
+        self.layout = layout
+        # The machine's frame and points, fixed for an episode (read at every step).
+        self._rotation = rot_z(layout.machine_yaw)
+        self.place_pos = self.machine_point(PLACE_OFFSET)
+        self.button_pos = self.machine_point(BUTTON_FACE_OFFSET)
 
     BODIES = ("plane", "table", "machine", "cup")
 
@@ -277,7 +286,7 @@ class CoffeeScene:
         Call :meth:`Simulation.clear_contact_caches` first (``CoffeeEnv.reset`` does), so that
         nothing of the previous episode's contacts is left.
         """
-        self.layout = layout
+        self._set_layout(layout)
         sim = self.sim
         yaw = layout.machine_yaw
         sim.set_base_pose(
@@ -293,10 +302,8 @@ class CoffeeScene:
         Called after every physics step. The button's cap also collides with the front panel
         after 8 mm, but a fast strike still pushed it up to 10 mm into the (soft) contact.
         """
-        sim = self.sim
-        pos, _ = sim.get_joint_states("machine", [0])
-        if pos[0] > BUTTON_MAX_TRAVEL:
-            sim.p.resetJointState(sim.bodies["machine"], 0, BUTTON_MAX_TRAVEL, 0.0)
+        if self.sim.joint_position("machine", 0) > BUTTON_MAX_TRAVEL:
+            self.sim.reset_joint_states("machine", [0], [BUTTON_MAX_TRAVEL])
 
     def apply_spring(self) -> None:
         """The button's return spring: a weak position motor towards travel 0."""
@@ -307,7 +314,8 @@ class CoffeeScene:
     # ---------------------------------------------------------------- state
     @property
     def machine_rotation(self) -> NDArray[np.float64]:
-        return rot_z(self.layout.machine_yaw)
+        """Rotation (3, 3) of the machine frame: its x axis is the button's axis."""
+        return self._rotation
 
     def machine_point(self, offset: NDArray[np.float64]) -> NDArray[np.float64]:
         """World position of a point given in the machine frame."""
@@ -327,15 +335,14 @@ class CoffeeScene:
         pos, _ = self.sim.get_joint_states("machine", [0])
         return float(max(pos[0], 0.0))
 
-    def finger_contacts(self) -> tuple[bool, bool]:
-        """Whether each finger touches the cup."""
-        return (
-            self.sim.n_contacts("panda", "cup", link_a=FINGER_LINKS[0]) > 0,
-            self.sim.n_contacts("panda", "cup", link_a=FINGER_LINKS[1]) > 0,
-        )
+    def robot_cup_contacts(self) -> tuple[bool, bool, bool]:
+        """Whether the left finger, the right finger and any link of the robot touch the cup
+        (one contact query)."""
+        links = self.sim.contact_links("panda", "cup")
+        return FINGER_LINKS[0] in links, FINGER_LINKS[1] in links, bool(links)
 
     def robot_touches_cup(self) -> bool:
-        return self.sim.n_contacts("panda", "cup") > 0
+        return self.robot_cup_contacts()[2]
 
     def cup_on_table(self) -> bool:
         return self.sim.n_contacts("cup", "table") > 0
@@ -348,9 +355,9 @@ class CoffeeScene:
             "cup_pos": cup_pos,
             "cup_radius": np.array(CUP_RADIUS),
             "cup_height": np.array(CUP_HEIGHT),
-            "place_pos": self.machine_point(PLACE_OFFSET),
+            "place_pos": self.place_pos.copy(),
             "place_tolerance": np.array(PLACE_TOLERANCE),
-            "button_pos": self.machine_point(BUTTON_FACE_OFFSET),
+            "button_pos": self.button_pos.copy(),
             "button_axis": rot[:, 0].copy(),
             "button_travel_to_press": np.array(BUTTON_PRESS_TRAVEL),
         }

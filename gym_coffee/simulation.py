@@ -6,11 +6,13 @@ process never share state. Bodies are addressed by name.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
 from contextlib import suppress
+from typing import Any
 
 import numpy as np
 import pybullet
@@ -24,6 +26,18 @@ __all__ = ["ASSETS_DIR", "Simulation"]
 ASSETS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
 
 logger = logging.getLogger(__name__)
+
+
+class _Client(bullet_client.BulletClient):
+    """A ``BulletClient`` that binds each PyBullet function to its server once, not at every call
+    (``BulletClient.__getattr__`` inspects and wraps the function anew each time: ~20% of a
+    step's CPU time went there)."""
+
+    def __getattr__(self, name: str) -> Any:
+        attribute = super().__getattr__(name)
+        if name != "disconnect" and isinstance(attribute, functools.partial):
+            self.__dict__[name] = attribute
+        return attribute
 
 
 def display_available() -> bool:
@@ -53,6 +67,9 @@ class Simulation:
     ) -> None:
         self.render_mode = render_mode
         self.gui = render_mode == "human" and display_available()
+        #: Load the bodies' visual shapes (meshes) only when something renders: loading the
+        #: Panda's visual meshes took ~80% of a world rebuild (see docs/design-env.md).
+        self.visual_shapes = render_mode is not None
         if render_mode == "human" and not self.gui:
             # PyBullet's GUI would hang or abort without a display (e.g. in check_env on CI).
             logger.warning("render_mode='human' but no display is available: running headless")
@@ -75,7 +92,7 @@ class Simulation:
         if self.client is not None:
             return
         mode = pybullet.GUI if self.gui else pybullet.DIRECT
-        self.client = bullet_client.BulletClient(connection_mode=mode)
+        self.client = _Client(connection_mode=mode)
         if self.gui:
             self.client.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0)
         self.reset_world()
@@ -164,13 +181,15 @@ class Simulation:
     ) -> int:
         """Load a URDF as body ``name``; ``package_asset`` picks gym-coffee's assets over
         pybullet_data's; ``self_collision`` lets the body's links collide with each other, a link
-        with its parent included."""
+        with its parent included. Visual shapes are loaded only if :attr:`visual_shapes`."""
         path = os.path.join(ASSETS_DIR if package_asset else pybullet_data.getDataPath(), file_name)
         flags = pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES
         if self_collision:
             flags |= (
                 pybullet.URDF_USE_SELF_COLLISION | pybullet.URDF_USE_SELF_COLLISION_INCLUDE_PARENT
             )
+        if not self.visual_shapes:
+            flags |= pybullet.URDF_IGNORE_VISUAL_SHAPES
         body = self.p.loadURDF(
             path,
             basePosition=[float(v) for v in np.asarray(base_position, dtype=float)],
@@ -184,16 +203,11 @@ class Simulation:
         self._inertial_offset[name] = np.array(self.p.getDynamicsInfo(body, -1)[3])
         return body
 
-    def remove_body(self, name: str) -> None:
-        """Remove body ``name`` from the world."""
-        self.p.removeBody(self.bodies.pop(name))
-        self._inertial_offset.pop(name, None)
-
     def set_base_pose(self, name: str, position: ArrayLike, orientation: ArrayLike) -> None:
         """Put the base's URDF link frame at ``position`` with quaternion ``orientation`` (xyzw),
         at rest."""
         position = np.asarray(position, dtype=float)
-        orientation = [float(v) for v in orientation]
+        orientation = [float(v) for v in np.asarray(orientation, dtype=float)]
         offset = self._inertial_offset[name]
         if offset.any():
             rot = np.array(self.p.getMatrixFromQuaternion(orientation)).reshape(3, 3)
@@ -210,9 +224,6 @@ class Simulation:
             rot = np.array(self.p.getMatrixFromQuaternion(quat)).reshape(3, 3)
             pos = pos - rot @ offset
         return pos, np.array(quat)
-
-    def get_matrix_from_quaternion(self, quat: ArrayLike) -> NDArray[np.float64]:
-        return np.array(self.p.getMatrixFromQuaternion([float(v) for v in quat])).reshape(3, 3)
 
     def get_base_velocity(self, name: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         lin, ang = self.p.getBaseVelocity(self.bodies[name])
@@ -231,6 +242,10 @@ class Simulation:
         """Positions and velocities of the given joints."""
         states = self.p.getJointStates(self.bodies[name], list(joints))
         return np.array([s[0] for s in states]), np.array([s[1] for s in states])
+
+    def joint_position(self, name: str, joint: int) -> float:
+        """Position of one joint."""
+        return float(self.p.getJointState(self.bodies[name], joint)[0])
 
     def reset_joint_states(self, name: str, joints: Sequence[int], positions: ArrayLike) -> None:
         body = self.bodies[name]
@@ -289,10 +304,9 @@ class Simulation:
             kwargs["linkIndexB"] = link_b
         return len(self.p.getContactPoints(self.bodies[name_a], self.bodies[name_b], **kwargs))
 
-    def contact_normal_force(self, name_a: str, name_b: str, link_a: int | None = None) -> float:
-        kwargs = {} if link_a is None else {"linkIndexA": link_a}
-        points = self.p.getContactPoints(self.bodies[name_a], self.bodies[name_b], **kwargs)
-        return float(sum(pt[9] for pt in points))
+    def contact_links(self, name_a: str, name_b: str) -> set[int]:
+        """Links of body ``name_a`` that touch body ``name_b``."""
+        return {pt[3] for pt in self.p.getContactPoints(self.bodies[name_a], self.bodies[name_b])}
 
     # ------------------------------------------------------------------ rendering
     def render(
@@ -310,7 +324,7 @@ class Simulation:
         headless). ``shadows`` costs about twice the time (TinyRenderer draws the scene twice)."""
         p = self.p
         view = p.computeViewMatrixFromYawPitchRoll(
-            cameraTargetPosition=list(map(float, target)),
+            cameraTargetPosition=[float(v) for v in np.asarray(target, dtype=float)],
             distance=float(distance),
             yaw=float(yaw),
             pitch=float(pitch),
@@ -341,12 +355,5 @@ class Simulation:
                 cameraDistance=float(distance),
                 cameraYaw=float(yaw),
                 cameraPitch=float(pitch),
-                cameraTargetPosition=list(map(float, target)),
+                cameraTargetPosition=[float(v) for v in np.asarray(target, dtype=float)],
             )
-
-    # ------------------------------------------------------------------ helpers
-    def get_euler_from_quaternion(self, quat: ArrayLike) -> NDArray[np.float64]:
-        return np.array(self.p.getEulerFromQuaternion(list(map(float, quat))))
-
-    def get_quaternion_from_euler(self, euler: ArrayLike) -> NDArray[np.float64]:
-        return np.array(self.p.getQuaternionFromEuler(list(map(float, euler))))

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from gym_coffee.env import CONTROL_DT, obs_part
 from gym_coffee.kinematics import PandaKinematics
@@ -63,30 +64,6 @@ def _hand_rotation(direction: NDArray[np.float64], flip: bool) -> NDArray[np.flo
     return np.column_stack([x, y, z])
 
 
-def _rotvec(rot: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vector of a rotation matrix."""
-    cos = np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos)
-    axis = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * axis
-    if np.pi - angle < 1e-6:  # 180 degrees: axis from the symmetric part
-        sym = (rot + np.eye(3)) / 2.0
-        k = int(np.argmax(np.diag(sym)))
-        v = sym[:, k] / np.sqrt(max(sym[k, k], 1e-12))
-        return angle * v
-    return angle / (2.0 * np.sin(angle)) * axis
-
-
-def _rotmat(rotvec: NDArray[np.float64]) -> NDArray[np.float64]:
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = rotvec / angle
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * (kx @ kx)
-
-
 @dataclass
 class Segment:
     """One minimum-jerk move of the grasp point (with an arc ``via``) and the hand orientation."""
@@ -103,12 +80,12 @@ class Segment:
     name: str = ""
 
     def __post_init__(self) -> None:
-        self._rotvec = _rotvec(self.r0.T @ self.r1)
+        self._rotvec = Rotation.from_matrix(self.r0.T @ self.r1).as_rotvec()
 
     def at(self, t: float) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
         s = _min_jerk((t - self.t0) / max(self.t1 - self.t0, 1e-9))
         pos = self.p0 + s * (self.p1 - self.p0) + 4.0 * s * (1.0 - s) * self.via
-        rot = self.r0 @ _rotmat(s * self._rotvec)
+        rot = self.r0 @ Rotation.from_rotvec(s * self._rotvec).as_matrix()
         grip = self.grip0 + s * (self.grip1 - self.grip0)
         return pos, rot, grip
 
@@ -131,7 +108,7 @@ class ScriptedTeacher:
 
     Example:
         >>> import gymnasium as gym, gym_coffee
-        >>> env = gym.make("gym_coffee/CoffeeTask-v0")
+        >>> env = gym.make(gym_coffee.ENV_ID)
         >>> import numpy as np
         >>> teacher = ScriptedTeacher(env, rng=np.random.default_rng([1, 0]))
         >>> obs, info = env.reset(seed=0)

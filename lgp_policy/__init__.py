@@ -28,8 +28,8 @@ _LAZY = {
     "DemonstrationEncoder": "lgp_policy.lfd.encoding",
     "GPDemonstrationPolicy": "lgp_policy.lfd.policy",
     "evaluate_policy_stages": "lgp_policy.app.evaluation",
-    "ResidualWrapper": "lgp_policy.residual.core",
-    "ResidualPolicy": "lgp_policy.residual.core",
+    "ResidualWrapper": "lgp_policy.residual",
+    "ResidualPolicy": "lgp_policy.residual",
 }
 
 __all__ = ["__version__", *_LAZY]

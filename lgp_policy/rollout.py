@@ -33,6 +33,7 @@ class Episode:
         terminated: whether the episode ended by termination (not by the time limit).
         observations: ``(length + 1, obs_dim)``, the reset observation and one per step, when
             asked for (``keep_observations=True``).
+        actions: ``(length, act_dim)``, the actions taken (with ``keep_observations=True``).
         frames: rendered RGB frames, when asked for (``render=True``).
     """
 
@@ -43,6 +44,7 @@ class Episode:
     final_info: dict[str, Any]
     terminated: bool
     observations: NDArray[np.float64] | None = None
+    actions: NDArray[np.float64] | None = None
     frames: list[NDArray[np.uint8]] = field(default_factory=list)
 
     def record(self, flags: Sequence[str]) -> dict[str, Any]:
@@ -85,7 +87,7 @@ def run_episode(
         render: collect ``env.render()`` after the reset, every ``render_every`` steps, and
             after the last step (the env must have been made with ``render_mode="rgb_array"``).
         render_every: keep every ``render_every``-th step as a frame.
-        keep_observations: keep every observation (for traces computed afterwards).
+        keep_observations: keep every observation and action (for traces computed afterwards).
         on_step: called after each step as ``on_step(observation, action, reward, info)``.
 
     Returns:
@@ -96,6 +98,7 @@ def run_episode(
     obs, info = env.reset(seed=int(seed), options=None if options is None else dict(options))
     reached = {k: bool(info[k]) for k in flags if k in info}
     observations = [np.array(obs, dtype=float)] if keep_observations else None
+    actions: list[NDArray[np.float64]] = []
     frames = [env.render()] if render else []
     action_shape = getattr(getattr(env, "action_space", None), "shape", None)
     state: Any = None
@@ -118,6 +121,7 @@ def run_episode(
         terminated, done = bool(term), bool(term or trunc)
         if observations is not None:
             observations.append(np.array(obs, dtype=float))
+            actions.append(np.array(action, dtype=float))
         if render and (done or length % render_every == 0):
             frames.append(env.render())
         if on_step is not None:
@@ -130,5 +134,6 @@ def run_episode(
         final_info=dict(info),
         terminated=terminated,
         observations=None if observations is None else np.stack(observations),
+        actions=np.stack(actions) if observations is not None and actions else None,
         frames=frames,
     )

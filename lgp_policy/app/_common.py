@@ -29,13 +29,16 @@ __all__ = [
     "EXIT_FAILURE",
     "EXIT_INTERRUPTED",
     "EXIT_USAGE",
+    "MAX_DEMOS",
     "MAX_SEED",
     "ArgumentParser",
     "UsageError",
     "add_force_option",
     "check_output",
     "check_output_folder",
+    "check_seed_room",
     "check_video_output",
+    "demos_int",
     "finite_float",
     "input_file",
     "int_range",
@@ -51,6 +54,8 @@ EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 MAX_SEED = 2**31 - 1
 """Largest seed any layout may get (seeds are also offset, e.g. ``10000 + S + i``)."""
+MAX_DEMOS = 10_000
+"""Most demonstrations one command records (``record --n``, ``run --demos``)."""
 VIDEO_SUFFIXES = (".mp4", ".gif")
 """Video formats (``gym_coffee.video.VIDEO_SUFFIXES``; ``.mp4`` needs ``imageio-ffmpeg``)."""
 
@@ -88,6 +93,7 @@ def int_range(lo: int, hi: int | None = None, *, what: str = "an integer") -> Ca
 
 positive_int = int_range(1, None, what="an integer")
 non_negative_int = int_range(0, None, what="an integer")
+demos_int = int_range(1, MAX_DEMOS, what="a number of demonstrations")
 seed_int = int_range(0, MAX_SEED, what="a seed")
 
 
@@ -134,6 +140,15 @@ def input_file(*suffixes: str) -> Callable[[str], Path]:
     return parse
 
 
+def check_seed_room(seed: int, count: int, flag: str, value: int) -> None:
+    """Raise :class:`UsageError` naming ``--seed`` unless seeds ``seed .. seed + count`` fit
+    below :data:`MAX_SEED` (``count`` seeds are used with ``flag value``)."""
+    if seed + count > MAX_SEED:
+        raise UsageError(
+            f"argument --seed: expected at most {MAX_SEED - count} with {flag} {value}, got {seed}"
+        )
+
+
 # ------------------------------------------------------------- outputs: one overwrite rule
 class _DeprecatedOverwrite(argparse.Action):
     def __call__(self, parser: Any, namespace: Any, values: Any, option: Any = None) -> None:
@@ -174,7 +189,9 @@ def check_output(
             raise UsageError(f"argument {flag}: {path} is also an input; choose another name")
     try:
         return check_output_path(path, force=force, suffixes=suffixes, what="output")
-    except (ValueError, FileExistsError) as exc:
+    except FileExistsError:
+        raise UsageError(f"argument {flag}: {path} exists; pass --force to overwrite it") from None
+    except ValueError as exc:
         raise UsageError(f"argument {flag}: {exc}") from None
 
 

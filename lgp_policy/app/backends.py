@@ -15,11 +15,13 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import socket
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,6 +34,8 @@ __all__ = [
     "add_backend_arguments",
     "check_backend",
     "chunk_seeds",
+    "map_tasks",
+    "one_thread",
     "start_episodes",
 ]
 
@@ -78,7 +82,7 @@ def chunk_seeds(seeds: Sequence[int], n_chunks: int) -> list[list[int]]:
 
 
 def _limit_threads() -> Any:
-    """One BLAS (and torch) thread in this process; returns the threadpoolctl limiter."""
+    """One BLAS (and torch) thread in this worker process; returns the threadpoolctl limiter."""
     from threadpoolctl import threadpool_limits
 
     limiter = threadpool_limits(limits=1, user_api="blas")
@@ -86,6 +90,20 @@ def _limit_threads() -> Any:
     if torch is not None:
         torch.set_num_threads(1)
     return limiter
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """One BLAS (and torch) thread for the duration of the block, restored afterwards (for
+    work in the caller's own process)."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    with _limit_threads():
+        try:
+            yield
+        finally:
+            if torch is not None and before is not None:
+                torch.set_num_threads(before)
 
 
 def _run_seeds(policy: Any, env: Any, seeds: Sequence[int], flags: Sequence[str]) -> list[dict]:
@@ -107,6 +125,9 @@ _WORKER: dict[str, Any] = {}
 
 
 def _pool_init(policy: Any, env_factory: Callable[..., Any]) -> None:
+    # Ctrl-C reaches the whole process group: the driver stops the workers (see collect_pool);
+    # a worker that caught it would hand it back as a chunk's result and go on with the next
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _WORKER["clock"] = 0.0  # a forked worker's CPU clock starts at 0: its set-up counts too
     _WORKER["limiter"] = _limit_threads()
     _WORKER["policy"] = policy
@@ -131,25 +152,34 @@ def _pool_context() -> Any:
 
 
 # ------------------------------------------------------------------------------ ray
-_RAY_ENV: dict[str, Any] = {}
+_RAY_WORKER: dict[str, Any] = {}
 
 
-def _ray_chunk(
-    policy: Any, env_factory: Callable[..., Any], seeds: Sequence[int], flags: Sequence[str]
-) -> dict[str, Any]:
-    """One Ray task: a chunk of episodes on this worker's cached env (made on first use)."""
-    from ray import cloudpickle
+def _ray_chunk(refs: Sequence[Any], seeds: Sequence[int], flags: Sequence[str]) -> dict[str, Any]:
+    """One Ray task: a chunk of episodes on this worker's cached policy and env.
+
+    ``refs`` is ``[policy_ref, env_factory_ref]`` inside a list, so that Ray hands over the
+    references rather than the values: a worker fetches and copies the policy once, not per
+    task (the copy is writable; values straight from the object store are read-only arrays, and
+    a policy with memory updates its arrays in place), and makes its env once.
+    """
+    import copy
+
+    import ray
 
     start = time.process_time()
-
-    key = cloudpickle.dumps(env_factory)
-    if _RAY_ENV.get("key") != key:
-        if "env" in _RAY_ENV:
-            _RAY_ENV.pop("env").close()
-        _RAY_ENV["limiter"] = _limit_threads()
-        _RAY_ENV["env"] = env_factory()
-        _RAY_ENV["key"] = key
-    return _chunk_result(_run_seeds(policy, _RAY_ENV["env"], seeds, flags), start)
+    policy_ref, factory_ref = refs
+    if _RAY_WORKER.get("policy_key") != policy_ref.hex():
+        _RAY_WORKER["policy"] = copy.deepcopy(ray.get(policy_ref))
+        _RAY_WORKER["policy_key"] = policy_ref.hex()
+    if _RAY_WORKER.get("env_key") != factory_ref.hex():
+        if "env" in _RAY_WORKER:
+            _RAY_WORKER.pop("env").close()
+        _RAY_WORKER["limiter"] = _limit_threads()
+        _RAY_WORKER["env"] = ray.get(factory_ref)()
+        _RAY_WORKER["env_key"] = factory_ref.hex()
+    records = _run_seeds(_RAY_WORKER["policy"], _RAY_WORKER["env"], seeds, flags)
+    return _chunk_result(records, start)
 
 
 def _ray_init(address: str | None, workers: int) -> Any:
@@ -243,17 +273,23 @@ def start_episodes(
         chunks = _chunks(seeds, n_cpus, chunk_size)
         remote = ray.remote(num_cpus=1)(_ray_chunk)
         policy_ref, factory_ref = ray.put(policy), ray.put(env_factory)
-        pending = [remote.remote(policy_ref, factory_ref, c, flags) for c in chunks]
+        refs = [policy_ref, factory_ref]  # in a list: the tasks get the references
+        pending = [remote.remote(refs, c, flags) for c in chunks]
 
         def collect_ray() -> list[dict]:
             out: list[dict] = []
             todo = list(pending)
-            while todo:
-                ready, todo = ray.wait(todo, num_returns=1)
-                for ref in ready:
-                    chunk = ray.get(ref)
-                    out.append(chunk)
-                    done(len(chunk["records"]))
+            try:
+                while todo:
+                    ready, todo = ray.wait(todo, num_returns=1)
+                    for ref in ready:
+                        chunk = ray.get(ref)
+                        out.append(chunk)
+                        done(len(chunk["records"]))
+            except BaseException:  # Ctrl-C or a failed task: cancel what is left
+                for ref in todo:
+                    ray.cancel(ref, force=True)
+                raise
             return out
 
         return EpisodeJob(seeds, collect_ray)
@@ -264,7 +300,7 @@ def start_episodes(
             env = env_factory()
             out: list[dict] = []
             try:
-                with _limit_threads():
+                with one_thread():
                     for s in seeds:
                         start = time.process_time()
                         out.append(_chunk_result(_run_seeds(policy, env, [s], flags), start))
@@ -296,8 +332,12 @@ def start_episodes(
                     chunk = f.result()
                     out.append(chunk)
                     done(len(chunk["records"]))
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException:  # Ctrl-C or a failed chunk: stop the workers now, not after
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown(wait=True)
         return out
 
     return EpisodeJob(seeds, collect_pool)
@@ -309,10 +349,43 @@ def _chunks(seeds: list[int], n_workers: int, chunk_size: int | None) -> list[li
     return chunk_seeds(seeds, CHUNKS_PER_WORKER * n_workers)
 
 
+def map_tasks(
+    fn: Callable[[Any], Any],
+    items: Sequence[Any],
+    *,
+    backend: str = "local",
+    address: str | None = None,
+    workers: int = 1,
+    num_cpus: float = 1,
+) -> list[Any]:
+    """``[fn(item) for item in items]``, run where ``backend`` says, results in item order.
+
+    For coarse jobs that are not episodes (e.g. one residual fine-tuning per seed): ``"local"``
+    runs them here (``workers=1``) or in ``workers`` forked processes; ``"ray"`` runs each as
+    a Ray task asking for ``num_cpus`` CPUs (``ray.init(address=address)`` unless Ray is already
+    initialised; see :func:`start_episodes`). ``fn`` and the items must be picklable for
+    anything but the serial local case.
+    """
+    check_backend(backend, workers)
+    items = list(items)
+    if backend == "ray":
+        ray = _ray_init(address, workers)
+        remote = ray.remote(num_cpus=num_cpus)(fn)
+        return list(ray.get([remote.remote(item) for item in items]))
+    if workers == 1 or len(items) <= 1:
+        return [fn(item) for item in items]
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(items)), mp_context=_pool_context(), initializer=_limit_threads
+    ) as pool:
+        return list(pool.map(fn, items))
+
+
 def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``--backend {local,ray}``, ``--address ADDR`` and ``--chunk-size N`` to a command
     (``gym-coffee evaluate``); pass them on as ``backend=args.backend,
     address=args.address, chunk_size=args.chunk_size``."""
+    from lgp_policy.app._common import positive_int
+
     g = parser.add_argument_group("where episodes run")
     g.add_argument(
         "--backend",
@@ -329,7 +402,7 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--chunk-size",
-        type=int,
+        type=positive_int,
         default=None,
         metavar="N",
         help="episodes per job/task (default: about 4 chunks per worker)",

@@ -16,13 +16,13 @@ from typing import TYPE_CHECKING, Any
 
 import gym_coffee
 from lgp_policy.app._common import (
-    MAX_SEED,
     ArgumentParser,
     UsageError,
     add_force_option,
     check_output,
+    check_seed_room,
     check_video_output,
-    positive_int,
+    demos_int,
     run_command,
     seed_int,
 )
@@ -60,7 +60,7 @@ def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentP
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--n", type=positive_int, default=4, help="number of demonstrations")
+    p.add_argument("--n", type=demos_int, default=4, help="number of demonstrations")
     p.add_argument("--out", type=Path, required=True, help="output .npz file")
     p.add_argument(
         "--seed",
@@ -84,10 +84,7 @@ def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentP
 def check_record(args: argparse.Namespace) -> None:
     """Every ``record`` argument, before any work."""
     check_env_id(args.env_id)
-    if args.seed + 100 * args.n > MAX_SEED:
-        raise UsageError(
-            f"argument --seed: expected at most {MAX_SEED - 100 * args.n} for --n {args.n}"
-        )
+    check_seed_room(args.seed, 100 * args.n, "--n", args.n)
     check_output("--out", args.out, force=args.force, suffixes=(".npz",))
     if args.video is not None:
         check_video_output("--video", args.video, force=args.force)
@@ -113,7 +110,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     if failed:
         print(f"the teacher failed on seeds {failed}; they were skipped")
     if args.video is not None:
-        path = record_video(args.env_id, demos[0], args.video, progress=not args.no_progress)
+        path = record_video(
+            args.env_id, demos[0], args.video, progress=not args.no_progress, overwrite=args.force
+        )
         print(f"wrote {path}")
     return 0
 
@@ -134,6 +133,7 @@ def record_video(
     max_frames: int | None = None,
     env_kwargs: dict[str, Any] | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> Path:
     """Replay ``demo``'s actions in a fresh ``rgb_array`` env and write every ``stride``-th frame.
 
@@ -170,7 +170,7 @@ def record_video(
         env.close()
         if bar is not None:
             bar.close()
-    return write_video(path, frames, fps=fps)
+    return write_video(path, frames, fps=fps, overwrite=overwrite)
 
 
 def _add_debug_option(p: argparse.ArgumentParser, default: Any) -> None:

@@ -22,20 +22,21 @@ from typing import Any
 
 from lgp_policy._io import atomic_write_text
 from lgp_policy.app._common import (
-    MAX_SEED,
     UsageError,
     add_force_option,
     check_output,
     check_output_folder,
+    check_seed_room,
     check_video_output,
+    demos_int,
     finite_float,
     input_file,
     int_range,
-    positive_int,
     seed_int,
 )
+from lgp_policy.app.backends import add_backend_arguments
 
-__all__ = ["RUN_FILES", "add_subcommands", "load_policy"]
+__all__ = ["add_subcommands", "load_policy"]
 
 MAX_WORKERS = 1024
 MAX_EPISODES = 10_000_000
@@ -44,20 +45,6 @@ EVAL_SEED_OFFSET = 10_000
 MODELS = ("local", "heteroscedastic", "exact", "empirical")
 COMBINE_RULES = ("product", "nearest", "rbcm")
 """``LocalGP`` combination rules (``lgp_policy.gp.local.COMBINE_RULES``)."""
-RUN_FILES = (
-    "demonstrations.npz",
-    "policy.npz",
-    "constraints.json",
-    "results.json",
-    "rollout.gif",
-    "fig1_heteroscedastic.png",
-    "fig2_clustering.png",
-    "fig4_constraints.png",
-    "fig5_reproduction.png",
-)
-"""The files ``gym-coffee run`` writes into its folder: ``--force`` removes these (and only
-these) before a new run, so a folder never mixes two runs."""
-
 workers_int = int_range(1, MAX_WORKERS, what="a number of workers")
 episodes_int = int_range(1, MAX_EPISODES, what="a number of episodes")
 
@@ -90,15 +77,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         "--video", type=Path, default=None, help="also record the first layout (.mp4 or .gif)"
     )
     p.add_argument("--json", type=Path, default=None, help="write the full results here (.json)")
-    p.add_argument(
-        "--backend",
-        choices=("local", "ray"),
-        default="local",
-        help="run episodes in local processes or as Ray tasks (needs the ray extra)",
-    )
-    p.add_argument(
-        "--address", default=None, help="Ray cluster address (with --backend ray; default: local)"
-    )
+    add_backend_arguments(p)
     add_force_option(p, "--json and --video files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_evaluate)
@@ -117,7 +96,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         default=Path("gym-coffee-run"),
         help="output folder (default ./gym-coffee-run)",
     )
-    p.add_argument("--demos", type=positive_int, default=4, help="demonstrations (default 4)")
+    p.add_argument("--demos", type=demos_int, default=4, help="demonstrations (default 4)")
     p.add_argument("--episodes", type=episodes_int, default=50, help="layouts (default 50)")
     p.add_argument("--seed", type=seed_int, default=0, help="seed of demonstrations and layouts")
     p.add_argument("--workers", type=workers_int, default=1, help="parallel envs for evaluation")
@@ -180,15 +159,8 @@ def _policy_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def load_policy(path: str | Path) -> Any:
     """Open a GP policy ``.npz`` or a residual policy file (dispatching on its ``kind``)."""
-    try:
-        from lgp_policy.residual import load_any_policy  # type: ignore[attr-defined]
-    except ImportError:
-        try:  # until the residual package exports it
-            from lgp_policy.residual.core import load_any_policy
-        except ImportError:  # no residual support in this install: GP policies only
-            from lgp_policy.lfd.policy import GPDemonstrationPolicy
+    from lgp_policy.residual import load_any_policy
 
-            return GPDemonstrationPolicy.load(path)
     return load_any_policy(path)
 
 
@@ -210,11 +182,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def _check_evaluate(args: argparse.Namespace) -> None:
-    if args.seed + EVAL_SEED_OFFSET + args.episodes > MAX_SEED:
-        raise UsageError(
-            f"argument --seed: expected at most {MAX_SEED - EVAL_SEED_OFFSET - args.episodes} "
-            f"with --episodes {args.episodes}"
-        )
+    check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
     outputs = {}
     if args.json is not None:
         outputs["--json"] = check_output(
@@ -224,6 +192,8 @@ def _check_evaluate(args: argparse.Namespace) -> None:
         outputs["--video"] = check_video_output("--video", args.video, force=args.force)
     if len({p.absolute() for p in outputs.values()}) < len(outputs):
         raise UsageError("argument --video: the same file as --json")
+    if args.chunk_size is not None and args.chunk_size < 1:
+        raise UsageError(f"argument --chunk-size: expected an integer >= 1, got {args.chunk_size}")
     if args.address is not None and args.backend != "ray":
         raise UsageError("argument --address: needs --backend ray")
     if args.backend == "ray" and importlib.util.find_spec("ray") is None:
@@ -231,42 +201,37 @@ def _check_evaluate(args: argparse.Namespace) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from lgp_policy.app.evaluation import evaluate_policy_stages, format_results, record_rollout
+    from lgp_policy.app.evaluation import evaluate_policy_stages, format_results
 
     _check_evaluate(args)
     policy = load_policy(args.policy)
-    backend = {} if args.backend == "local" else {"backend": "ray", "address": args.address}
-    result = evaluate_policy_stages(
+    result = evaluate_policy_stages(  # the video is rendered during the evaluation itself
         policy,
         args.episodes,
         seed=args.seed,
         workers=args.workers,
+        video=args.video,
         progress=not args.no_progress,
-        **backend,
+        backend=args.backend,
+        address=args.address,
+        chunk_size=args.chunk_size,
+        force=args.force,
     )
     print(format_results(result))
-    if args.json is not None:  # saved as soon as it exists (a Ctrl-C in the video keeps it)
+    if result.get("video"):
+        print(f"video: {result['video']}")
+    if args.json is not None:
         atomic_write_text(args.json, json.dumps(result, indent=2), force=args.force)
         print(f"results: {args.json}")
-    if args.video is not None:
-        rec = record_rollout(policy, args.video, result["seeds"][0])
-        result["video"] = rec["video"]
-        print(f"video: {rec['video']}")
-        if args.json is not None:
-            atomic_write_text(args.json, json.dumps(result, indent=2), force=True)
     return 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from lgp_policy.app import pipeline
 
-    owned = getattr(pipeline, "RUN_FILES", RUN_FILES)
-    stale = check_output_folder("--out", args.out, force=args.force, owned=owned)
-    if args.seed + EVAL_SEED_OFFSET + args.episodes > MAX_SEED:
-        most = MAX_SEED - EVAL_SEED_OFFSET - args.episodes
-        raise UsageError(
-            f"argument --seed: expected at most {most} with --episodes {args.episodes}"
-        )
+    stale = check_output_folder("--out", args.out, force=args.force, owned=pipeline.RUN_FILES)
+    check_seed_room(args.seed, 100 * args.demos, "--demos", args.demos)
+    check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
     kwargs = _policy_kwargs(args)
     for path in stale:  # --force: the earlier run's files go first, so no mix of two runs
         path.unlink(missing_ok=True)

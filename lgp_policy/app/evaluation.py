@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 import gym_coffee
-from lgp_policy.app.backends import EnvFactory, check_backend, start_episodes
+from lgp_policy.app.backends import EnvFactory, check_backend, one_thread, start_episodes
 from lgp_policy.rollout import Episode, run_episode
 
 __all__ = [
@@ -31,7 +31,6 @@ __all__ = [
     "VIDEO_EVERY",
     "evaluate_policy_stages",
     "format_results",
-    "record_rollout",
     "summarize",
     "wilson_interval",
     "write_episode_video",
@@ -80,28 +79,6 @@ def write_episode_video(
         raise ValueError("the episode has no frames (roll it out with render=True)")
     frames = [*episode.frames, *[episode.frames[-1]] * 5]
     return write_video(path, frames, fps=fps or 1.0 / (VIDEO_EVERY * CONTROL_DT), overwrite=force)
-
-
-def record_rollout(
-    policy: Any,
-    path: str | Path,
-    seed: int,
-    *,
-    env_id: str = gym_coffee.ENV_ID,
-    env_kwargs: Mapping[str, Any] | None = None,
-    force: bool = True,
-) -> dict[str, Any]:
-    """Roll ``policy`` out on ``reset(seed=seed)`` with rendering and write the video.
-
-    Prefer ``evaluate_policy_stages(..., video=path)``, which records the first layout during
-    the evaluation itself instead of rolling it out a second time.
-
-    Returns:
-        The episode's record plus ``"video"``: the path written.
-    """
-    episode = _first_episode(policy, EnvFactory(env_id, env_kwargs or {}), seed, render=True)
-    written = write_episode_video(episode, path, force=force)
-    return {**episode.record(EVAL_FLAGS), "video": str(written)}
 
 
 def evaluate_policy_stages(
@@ -221,11 +198,9 @@ def evaluate_policy_stages(
 
 
 def _first_episode(policy: Any, factory: Callable[..., Any], seed: int, render: bool) -> Episode:
-    from threadpoolctl import threadpool_limits
-
     env = factory(render_mode="rgb_array") if render else factory()
     try:
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_thread():
             return run_episode(
                 policy,
                 env,

@@ -48,10 +48,18 @@ def _plt() -> Any:
     return plt
 
 
+def _save(fig: Any, path: str | Path) -> Path:
+    """Save a figure (PNG, 110 dpi) and close it."""
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
 def _stage_lines(ax: Any, policy: Any) -> None:
     phases = policy.constraints_.get("stage_phases", {}) if hasattr(policy, "constraints_") else {}
     for stage, s in phases.items():
-        if s is None:
+        if s is None or stage not in STAGE_LABELS:  # the task stages only (no gripper events)
             continue
         ax.axvline(s, color="k", ls=":", lw=0.8)
         ax.text(
@@ -131,30 +139,43 @@ def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0
         "Learned policies relative to the objects' initial poses (cf. Fig. 4)", fontsize=10
     )
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def trace_from_episode(policy: Any, episode: Any) -> dict[str, Any]:
     """What Fig. 5 needs, computed after the fact from an episode rolled out with
-    ``keep_observations=True`` (the policy is a function of the observation, so one batched
-    ``predict_distribution`` over the episode's observations gives the very actions it took).
+    ``keep_observations=True``: ``policy.predict_distribution`` replayed on the episode's
+    observations, in order, from a fresh start (the policy is deterministic, so the replay
+    takes the very actions of the roll-out; this is checked).
 
     Returns:
         ``{"phase" (n,), "ee_pos" (n, 3), "joint_pos" (n, 7), "joint_std" (n, 7),
         "targets": {frame: (n, 3) world targets}, "reached": {stage: bool}}`` for the ``n``
         observations the policy acted on.
     """
+    import inspect
+
     from gym_coffee.env import object_frames, obs_part
     from lgp_policy.lfd.reproduction import frame_estimate
 
     if episode.observations is None:
         raise ValueError("the episode has no observations (roll it out with keep_observations)")
     obs = np.asarray(episode.observations, dtype=float)[:-1]  # the last one was not acted on
-    dist = policy.predict_distribution(obs)
-    phase = np.asarray(dist.phase, dtype=float)
+    if "episode_start" in inspect.signature(policy.predict_distribution).parameters:
+        # a policy with memory (online frame filter, event-driven phase): replay step by step
+        steps = [
+            policy.predict_distribution(o, episode_start=np.array([i == 0]))
+            for i, o in enumerate(obs)
+        ]
+        phase = np.concatenate([d.phase for d in steps]).astype(float)
+        joint_std = np.concatenate([d.joint_std for d in steps]).astype(float)
+        actions = np.concatenate([d.action for d in steps])
+    else:
+        dist = policy.predict_distribution(obs)
+        phase, joint_std = np.asarray(dist.phase, float), np.asarray(dist.joint_std, float)
+        actions = np.asarray(dist.action)
+    if episode.actions is not None and not np.allclose(actions, episode.actions, atol=1e-6):
+        raise RuntimeError("replaying the policy on the episode gave other actions")
     frames = object_frames(obs[0])
     targets = {}
     for n in policy.frame_names_:
@@ -170,7 +191,7 @@ def trace_from_episode(policy: Any, episode: Any) -> dict[str, Any]:
         "phase": phase,
         "ee_pos": np.stack([obs_part(o, "ee_pos") for o in obs]).astype(float),
         "joint_pos": np.stack([obs_part(o, "joint_pos") for o in obs]).astype(float),
-        "joint_std": np.asarray(dist.joint_std, dtype=float),
+        "joint_std": joint_std,
         "targets": targets,
         "reached": {k: bool(episode.reached.get(k, False)) for k in STAGE_LABELS},
     }
@@ -243,10 +264,7 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     flags = ", ".join(f"{v} {'yes' if reached.get(k) else 'no'}" for k, v in STAGE_LABELS.items())
     fig.suptitle(f"Reproduction on a new layout (cf. Fig. 5): {flags}", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _pick_dimension(encoder: Any) -> tuple[str, int]:
@@ -339,10 +357,7 @@ def plot_heteroscedastic(
     ax.grid(alpha=0.3)
     fig.suptitle("Standard vs heteroscedastic GP on the demonstrations (cf. Fig. 1)", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_clustering(
@@ -396,10 +411,7 @@ def plot_clustering(
     ax.legend(fontsize=7, ncol=3, loc="upper left", markerscale=2)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def make_all(

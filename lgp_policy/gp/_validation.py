@@ -11,7 +11,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+#: Largest magnitude accepted in ``X`` and ``y``: the GPs square deviations and distances in
+#: float64 (largest finite value 1.8e308), so larger values would overflow to inf and NaN.
+MAX_ABS_VALUE = 1e100
+
 __all__ = [
+    "MAX_ABS_VALUE",
     "check_X",
     "check_X_y",
     "check_positive",
@@ -49,6 +54,7 @@ def check_X(
         )
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or infinity")
+    _check_magnitude(arr, name)
     if n_features is not None and arr.shape[1] != n_features:
         raise ValueError(
             f"{name} has {arr.shape[1]} features, but the model was fitted with {n_features}"
@@ -87,12 +93,23 @@ def check_X_y(
         )
     if not np.all(np.isfinite(y_arr)):
         raise ValueError("y contains NaN or infinity")
+    _check_magnitude(y_arr, "y")
     if X_arr.shape[0] < min_samples:
         raise ValueError(
             f"X and y have {X_arr.shape[0]} sample(s); at least {min_samples} are required "
             "to fit a Gaussian process"
         )
     return X_arr, y_arr
+
+
+def _check_magnitude(arr: NDArray[np.float64], name: str) -> None:
+    big = float(np.max(np.abs(arr)))
+    if big > MAX_ABS_VALUE:
+        raise ValueError(
+            f"{name} has values up to {big:.3g} in magnitude; the GP squares them in float64, "
+            f"so |{name}| must stay below {MAX_ABS_VALUE:g}. Rescale {name} (e.g. to SI units "
+            "or by its standard deviation)."
+        )
 
 
 def check_positive(value: Any, name: str) -> NDArray[np.float64]:

@@ -17,23 +17,32 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 import scipy.linalg
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy.gp._base import ParamsMixin
+from lgp_policy.gp._threads import with_single_blas_thread
 from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
 from lgp_policy.gp.kernels import Kernel, SquaredExponential, WhiteNoise
 
 __all__ = [
+    "MAX_EXACT_INPUTS",
     "GaussianProcess",
     "NotPositiveDefiniteError",
     "default_kernel",
     "fit_shared_hyperparameters",
     "maximize_lml",
 ]
+
+#: Most distinct training inputs the exact GP accepts. Learning holds about seven dense
+#: ``n x n`` float64 matrices at once (K_y, its Cholesky factor and inverse, dLML/dK, the cached
+#: distances and two kernel gradients): 7 * 8 * n^2 bytes, 3.6 GB at n = 8000 and 9 GB at
+#: n = 12 700, and each likelihood evaluation costs O(n^3). Replicated inputs are collapsed first
+#: and cost nothing. Larger data sets: :class:`lgp_policy.gp.local.LocalGP`.
+MAX_EXACT_INPUTS = 8000
 
 #: Relative jitter (times the mean diagonal of K_y) tried, in order, when Cholesky fails.
 JITTER_STEPS = (0.0, 1e-10, 1e-9, 1e-8, 1e-7, 1e-6)
@@ -239,7 +248,7 @@ class _Replicates:
         np.add.at(self.scatter, self.inverse, resid**2)
 
 
-class GaussianProcess:
+class GaussianProcess(ParamsMixin):
     """Exact GP regression, ``y = f(x) + eps`` with ``f ~ GP(0, k)`` (Eqs. 1, 2, 4).
 
     Args:
@@ -299,6 +308,7 @@ class GaussianProcess:
         self.random_state = random_state
 
     # ------------------------------------------------------------------ fitting
+    @with_single_blas_thread
     def fit(self, X: ArrayLike, y: ArrayLike) -> GaussianProcess:
         """Fit to ``X (n_samples, n_features)``, ``y (n_samples,)`` or ``(n_samples, n_targets)``.
 
@@ -324,8 +334,8 @@ class GaussianProcess:
 
         alpha = np.broadcast_to(np.asarray(self.alpha, dtype=np.float64), (X.shape[0],))
         has_noise = any(leaf.is_noise for leaf in kernel.leaves())
-        collapse = self.collapse_replicates and (has_noise or np.all(alpha > 0))
-        self._sqdist_cache = None
+        collapse = bool(self.collapse_replicates and (has_noise or np.all(alpha > 0)))
+        self._sqdist_cache: NDArray[np.float64] | None = None
         self._data = _Replicates(X, Yn, collapse)
         if self._data.collapsed:
             a_u = np.zeros(self._data.X.shape[0])
@@ -337,6 +347,15 @@ class GaussianProcess:
         else:
             a_u = alpha.copy()
         self._alpha_u = a_u
+        n_inputs = self._data.X.shape[0]
+        if n_inputs > MAX_EXACT_INPUTS:
+            gb = 7 * 8 * n_inputs**2 / 1e9
+            raise ValueError(
+                f"X has {n_inputs} distinct inputs; the exact GaussianProcess is limited to "
+                f"{MAX_EXACT_INPUTS} (it would hold ~{gb:.0f} GB of n x n matrices and cost "
+                "O(n^3) per likelihood evaluation). Use lgp_policy.gp.local.LocalGP, which "
+                "splits the data into local models of bounded size."
+            )
 
         self.kernel_ = kernel
         self.n_lml_evaluations_ = 0
@@ -395,7 +414,8 @@ class GaussianProcess:
         """
         K = np.zeros((X.shape[0], X.shape[0]))
         grads: list[tuple[int, NDArray[np.float64]]] = []
-        noise, noise_idx = 0.0, []
+        noise = 0.0
+        noise_idx: list[int] = []
         start = 0
         for leaf in kernel.leaves():
             p = leaf.n_dims
@@ -429,7 +449,8 @@ class GaussianProcess:
                 sq = np.sum(X**2, axis=1)
                 d2 = np.maximum(sq[:, None] + sq[None, :] - 2.0 * X @ X.T, 0.0)
             self._sqdist_cache = d2
-        return self._sqdist_cache
+            return d2
+        return self._sqdist_cache  # type: ignore[return-value]
 
     def _lml(self, theta: NDArray[np.float64], eval_gradient: bool):
         """Eq. (4) of the *full* data at ``theta``, via the unique inputs when collapsed."""
@@ -529,7 +550,7 @@ class GaussianProcess:
 
     def _predict_normalized(self, X: NDArray[np.float64], return_var: bool = True):
         """Latent mean ``(n, n_targets)`` and variance ``(n,)`` in normalised units."""
-        Ks = self.kernel_(X, self._data.X)  # WhiteNoise contributes nothing to k(X*, X)
+        Ks = np.asarray(self.kernel_(X, self._data.X))  # WhiteNoise: nothing in k(X*, X)
         mean = Ks @ self.alpha_  # Eq. (1)
         if not return_var:
             return mean, None
@@ -556,6 +577,7 @@ class GaussianProcess:
     def _out(self, a: NDArray[np.float64]) -> NDArray[np.float64]:
         return a[:, 0] if self._single_target else a
 
+    @with_single_blas_thread
     def predict(self, X: ArrayLike, return_std: bool = False):
         """Predictive mean (and std **including** the noise, like sklearn with a WhiteKernel).
 
@@ -571,6 +593,7 @@ class GaussianProcess:
         std = np.sqrt(var_f + self._noise_level)[:, None] * self._y_std
         return mean, self._out(std)
 
+    @with_single_blas_thread
     def predict_latent(self, X: ArrayLike):
         """Mean and noise-free standard deviation of the latent ``f(X)``: ``(mean, std_f)``."""
         self._check_fitted()
@@ -593,15 +616,3 @@ class GaussianProcess:
     def _check_fitted(self) -> None:
         if not hasattr(self, "alpha_"):
             raise ValueError(f"This {type(self).__name__} is not fitted yet; call fit(X, y) first")
-
-    def get_params(self, deep: bool = False) -> dict[str, Any]:
-        return {
-            "kernel": self.kernel,
-            "optimizer": self.optimizer,
-            "n_restarts": self.n_restarts,
-            "normalize_y": self.normalize_y,
-            "alpha": self.alpha,
-            "collapse_replicates": self.collapse_replicates,
-            "max_iter": self.max_iter,
-            "random_state": self.random_state,
-        }

@@ -22,13 +22,17 @@ distribution (no log correction); it is kept for comparison.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+import warnings
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy.gp._base import ConvergenceWarning, ParamsMixin
+from lgp_policy.gp._threads import with_single_blas_thread
 from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
 from lgp_policy.gp.exact import (
     GaussianProcess,
@@ -36,12 +40,22 @@ from lgp_policy.gp.exact import (
     default_kernel,
     fit_shared_hyperparameters,
 )
-from lgp_policy.gp.kernels import Kernel, SquaredExponential, WhiteNoise
+from lgp_policy.gp.kernels import Kernel, SquaredExponential
 
 #: Floor of ``1 - var_f / r`` in the leverage correction of squared residuals.
 MIN_RESIDUAL_FRACTION = 0.05
 
+#: The EM has converged when its objective changes by less than this many nats per sample.
+OBJECTIVE_TOL = 1e-3
+
+NOISE_BOUNDS = (1e-3, 10.0)
+"""Default bounds of the noise standard deviation ``sqrt(r(x))``, relative to the standard
+deviation of the training targets. The lower end is the floor that keeps the noise model
+well posed where demonstrations coincide exactly (zero spread: the squared residuals are 0 and
+their log is ``-inf``); the upper end keeps ``exp(z)`` finite wherever the z-process goes."""
+
 __all__ = [
+    "NOISE_BOUNDS",
     "EMResult",
     "HeteroscedasticGP",
     "default_noise_kernel",
@@ -66,29 +80,97 @@ def _log_mean_chi2_bias(m: NDArray[np.float64]) -> NDArray[np.float64]:
     return scipy.special.digamma(m / 2.0) - np.log(m / 2.0)
 
 
-def default_noise_kernel() -> Kernel:
-    """``SquaredExponential(1, 1) + WhiteNoise(0.5)``: z-process kernel (log noise)."""
-    return SquaredExponential(1.0, 1.0) + WhiteNoise(0.5)
+def _log_mean_chi2_var(m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``Var[log(chi2_m / m)] = psi'(m/2)``: the known noise of a log-noise target (4.93 for
+    ``m = 1``, 0.64 for ``m = 4``). It is the z-process's observation noise, so that noise
+    cannot collapse to zero (the failure of a learnt white-noise term)."""
+    return scipy.special.polygamma(1, m / 2.0)
+
+
+def default_noise_kernel(
+    signal_length_scale: float = 1.0, log_noise_bounds: tuple[float, float] = (-13.8, 4.6)
+) -> Kernel:
+    """z-process kernel: ``SquaredExponential`` whose hyperparameters cannot collapse.
+
+    * length scale at least ``signal_length_scale`` (the fitted length scale of ``f``): the
+      noise varies no faster than the function, so the noise model cannot resolve single samples
+      (which made ``r(x)`` piecewise constant and the predictions jump);
+    * variance in ``[1e-2, (width / 2)^2]`` with ``width`` the range of ``log r`` allowed by
+      ``log_noise_bounds``: the z-process cannot swing further than the bounds allow.
+    """
+    lo, hi = log_noise_bounds
+    ls = float(signal_length_scale)
+    return SquaredExponential(
+        1.0,
+        ls,
+        variance_bounds=(1e-2, max(1e-2, ((hi - lo) / 2.0) ** 2)),
+        length_scale_bounds=(ls, max(ls, 1e5)),
+    )
+
+
+def _with_noise_bounds(kernel: Kernel, log_lo: float, log_hi: float) -> Kernel:
+    """A copy of ``kernel`` whose WhiteNoise levels stay within ``exp([log_lo, log_hi])``."""
+    out = kernel.clone()
+    lo, hi = math.exp(log_lo), math.exp(log_hi)
+    for leaf in out.leaves():
+        if leaf.is_noise:
+            b = np.asarray(leaf.noise_level_bounds, dtype=np.float64)  # type: ignore[attr-defined]
+            new = (max(float(b[0]), lo), min(float(b[1]), hi))
+            if new[0] > new[1]:
+                new = (lo, hi)
+            leaf.noise_level_bounds = new  # type: ignore[attr-defined]
+            leaf.noise_level = float(np.clip(leaf.noise_level, *new))  # type: ignore[attr-defined]
+    return out
+
+
+def _fit_z(make, zk: Kernel, U, z, var) -> GaussianProcess:
+    """The z-process on the distinct inputs ``U`` with known target noise ``var``.
+
+    A single distinct input is given as two exact replicates of twice the noise (the same
+    information), since a GP needs two samples; the replicates are collapsed exactly.
+    """
+    if U.shape[0] == 1:
+        return make(zk, alpha=np.repeat(2.0 * var, 2)).fit(np.repeat(U, 2, axis=0), np.repeat(z, 2))
+    return make(zk, alpha=var).fit(U, z)
+
+
+def _signal_length_scale(kernel: Kernel) -> float:
+    ls = [
+        np.min(leaf.length_scale)
+        for leaf in kernel.leaves()
+        if isinstance(leaf, SquaredExponential)
+    ]
+    return float(min(ls)) if ls else 1.0
 
 
 @dataclass
 class EMResult:
-    """Output of :func:`most_likely_em`: one entry per data set in the lists."""
+    """Output of :func:`most_likely_em`: one entry per data set in the lists.
+
+    ``noise_gps[i]`` is ``None`` where the homoscedastic model (iteration 0) was kept; the log
+    noise is then the constant ``noise_offset``. ``objective`` holds the EM objective (the sum
+    over data sets of ``log p(y | X, R)``, Eq. 4 with ``R = diag(r(x_i))``) after every
+    iteration, iteration 0 being the homoscedastic GP; ``best_iter`` is the iteration kept.
+    """
 
     gps: list[GaussianProcess]
-    noise_gps: list[GaussianProcess]
-    noise_offsets: list[float]
+    noise_gps: list[GaussianProcess | None]
+    noise_offset: float
     homoscedastic_kernel: Kernel
     signal_kernel: Kernel
     noise_kernel: Kernel
     n_iter: int
     converged: bool
+    log_noise_bounds: tuple[float, float]
+    objective: list[float] = field(default_factory=list)
+    best_iter: int = 0
+    status: str = ""
 
 
 def most_likely_em(
     datasets: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
     kernel: Kernel,
-    noise_kernel: Kernel,
+    noise_kernel: Kernel | None,
     *,
     learn: bool = True,
     optimizer: Optimizer = "L-BFGS-B",
@@ -100,22 +182,44 @@ def most_likely_em(
     max_iter: int = 200,
     random_state: int | np.random.Generator | None = None,
     refit_kernel: Kernel | None = None,
+    log_noise_bounds: tuple[float, float] = (
+        2 * math.log(NOISE_BOUNDS[0]),
+        2 * math.log(NOISE_BOUNDS[1]),
+    ),
+    noise_offset: float | None = None,
 ) -> EMResult:
     """Most-likely heteroscedastic EM (Kersting et al. 2007) on one or more data sets.
 
     With several data sets (the local models of :class:`~lgp_policy.gp.local.LocalGP`) the
     hyperparameters are shared: each learning step maximises the *sum* of the data sets' log
-    marginal likelihoods. Each data set's z-process has its own constant mean (the mean of its
-    log-noise targets). ``learn=False`` keeps ``kernel`` and ``noise_kernel`` as given.
+    marginal likelihoods, and the z-processes share one constant mean ``noise_offset`` (the mean
+    of all log-noise targets, unless given), so that neighbouring local models agree on the noise
+    where they have no data. ``learn=False`` keeps ``kernel`` and ``noise_kernel`` as given.
+
+    Well-posedness: ``log r`` is kept within ``log_noise_bounds`` everywhere (targets, z at the
+    training inputs, predictions), the WhiteNoise of step 1 is bounded the same way, the
+    z-process's observation noise is the known variance of a log mean of squares
+    (:func:`_log_mean_chi2_var`) and its kernel has bounded hyperparameters
+    (:func:`default_noise_kernel`).
+
+    Objective: ``sum_i log p(y_i | X_i, R_i)`` (Eq. 4 with the noise ``R`` of the current
+    iteration; iteration 0 is the homoscedastic GP). The EM keeps the iteration with the best
+    objective and stops when ``log r`` changes by less than ``tol`` or the objective by less than
+    :data:`OBJECTIVE_TOL` nats per sample ("converged"), when the objective decreases by more
+    ("objective decreased"), or after ``max_em_iter`` ("max_em_iter reached"); ``status`` says
+    which.
 
     Args:
         datasets: ``[(X (n_i, d), y (n_i,)), ...]``, targets already standardised.
         kernel: homoscedastic kernel of step 1 (with a WhiteNoise term).
-        noise_kernel: z-process kernel.
+        noise_kernel: z-process kernel; ``None``: :func:`default_noise_kernel` from step 1.
         refit_kernel: kernel of ``f`` in step 4 (default: ``kernel`` without its noise term).
+        log_noise_bounds: ``(low, high)`` bounds of ``log r`` in the units of the targets.
+        noise_offset: fixed constant mean of the z-processes (``None``: learnt).
     """
     rng = check_random_state(random_state)
-    opt = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
+    opt: dict[str, Any] = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
+    lo, hi = (float(b) for b in log_noise_bounds)
 
     def make(k: Kernel, alpha: Any = 0.0) -> GaussianProcess:
         return GaussianProcess(
@@ -126,7 +230,8 @@ def most_likely_em(
             collapse_replicates=collapse_replicates,
         )
 
-    # Step 1: homoscedastic GP G1.
+    # Step 1: homoscedastic GP G1, its noise kept within the bounds.
+    kernel = _with_noise_bounds(kernel, lo, hi)
     gps = [make(kernel).fit(X, y) for X, y in datasets]
     if learn:
         fit_shared_hyperparameters(gps, random_state=rng, **opt)
@@ -135,12 +240,18 @@ def most_likely_em(
     for gp in gps:
         d = gp._data
         groups.append((d.X, d.inverse, d.counts, _log_mean_chi2_bias(d.counts)))
-    log_r = [np.log(gp.noise_variance(X)) for gp, (X, _) in zip(gps, datasets, strict=True)]
+    log_r0 = float(np.clip(math.log(gps[0]._noise_level), lo, hi))
+    log_r = [np.full(X.shape[0], log_r0) for X, _ in datasets]
     sig = signal_kernel(homoscedastic_kernel) if refit_kernel is None else refit_kernel.clone()
-    zk = noise_kernel.clone()
-    converged, n_iter = False, 0
-    noise_gps: list[GaussianProcess] = []
-    offsets: list[float] = []
+    if noise_kernel is None:
+        zk = default_noise_kernel(_signal_length_scale(homoscedastic_kernel), (lo, hi))
+    else:
+        zk = noise_kernel.clone()
+    best_obj = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
+    n_total = sum(X.shape[0] for X, _ in datasets)
+    objective = [best_obj]
+    best: tuple[Any, ...] = (gps, [None] * len(gps), log_r0, sig, zk, 0)
+    status, converged, n_iter = "max_em_iter reached", False, 0
     for _ in range(max_em_iter):
         n_iter += 1
         # Step 2: noise estimate at every training input from the posterior of f.
@@ -149,33 +260,38 @@ def most_likely_em(
             gps, datasets, groups, log_r, strict=True
         ):
             mu_u, var_u = gp._latent_at_training()  # at the distinct inputs, then per sample
-            mu, std_f = mu_u[inverse, 0], np.sqrt(var_u[inverse])
+            mu, var_f = mu_u[inverse, 0], var_u[inverse]
             if n_samples is None:
                 # Squared residual over its expectation r - var_f (leverage-corrected): an
                 # unbiased r(x_i) * chi2_1 draw; averaged over replicates, log-bias removed.
-                r = np.exp(lr)
-                e = (y - mu) ** 2 / np.maximum(1.0 - std_f**2 / r, MIN_RESIDUAL_FRACTION)
+                frac = np.maximum(1.0 - var_f * np.exp(-lr), MIN_RESIDUAL_FRACTION)
+                e = (y - mu) ** 2 / frac
                 e_u = np.bincount(inverse, weights=e, minlength=U.shape[0]) / counts
-                targets.append(np.log(np.maximum(e_u, 1e-300)) - bias)
+                z = np.log(np.maximum(e_u, 1e-300)) - bias
             else:
                 # Kersting et al.'s estimator: 0.5 (y_i - t_ij)^2, t_ij from the predictive
                 # distribution of the current GP (including its noise).
-                scale = np.sqrt(std_f**2 + np.exp(lr))
+                scale = np.sqrt(var_f + np.exp(lr))
                 t = mu[:, None] + scale[:, None] * rng.standard_normal((X.shape[0], n_samples))
                 e = np.mean(0.5 * (y[:, None] - t) ** 2, axis=1)
                 e_u = np.bincount(inverse, weights=e, minlength=U.shape[0]) / counts
-                targets.append(np.log(np.maximum(e_u, 1e-300)))
-        # Step 3: z-process G2 on the log noise.
-        offsets = [float(np.mean(z)) for z in targets]
+                z = np.log(np.maximum(e_u, 1e-300))
+            targets.append(np.clip(z, lo, hi))  # a zero residual means "at the floor"
+        # Step 3: z-process G2 on the log noise, one shared constant mean.
+        if noise_offset is None:
+            off = float(np.mean(np.concatenate(targets)))
+        else:
+            off = float(noise_offset)
         noise_gps = [
-            make(zk).fit(g[0], z - off) for g, z, off in zip(groups, targets, offsets, strict=True)
+            _fit_z(make, zk, g[0], z - off, _log_mean_chi2_var(g[2]))
+            for g, z in zip(groups, targets, strict=True)
         ]
         if learn:
             fit_shared_hyperparameters(noise_gps, random_state=rng, **opt)
             zk = noise_gps[0].kernel_.clone()
         new_log_r = [  # z at the training inputs (the z-process's own, distinct inputs)
-            zgp._latent_at_training()[0][:, 0][g[1]] + off
-            for zgp, g, off in zip(noise_gps, groups, offsets, strict=True)
+            np.clip(zgp._latent_at_training()[0][:, 0][g[1]] + off, lo, hi)
+            for zgp, g in zip(noise_gps, groups, strict=True)
         ]
         # Step 4: GP with R = diag(r(x_i)), Eq. (5).
         gps = [
@@ -185,22 +301,83 @@ def most_likely_em(
         if learn:
             fit_shared_hyperparameters(gps, random_state=rng, **opt)
             sig = gps[0].kernel_.clone()
+        obj = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
+        objective.append(obj)
         change = max(float(np.max(np.abs(a - b))) for a, b in zip(new_log_r, log_r, strict=True))
         log_r = new_log_r
-        if change < tol:
-            converged = True
+        if obj > best_obj:
+            best_obj = obj
+            best = (gps, noise_gps, off, sig, zk, n_iter)
+        step = obj - objective[-2]
+        if change < tol or abs(step) < OBJECTIVE_TOL * n_total:
+            status, converged = "converged", True
             break
-    return EMResult(gps, noise_gps, offsets, homoscedastic_kernel, sig, zk, n_iter, converged)
+        if step < 0:
+            status = "objective decreased"
+            break
+    gps_b, noise_b, off_b, sig_b, zk_b, it_b = best
+    return EMResult(
+        gps_b,
+        noise_b,
+        off_b,
+        homoscedastic_kernel,
+        sig_b,
+        zk_b,
+        n_iter,
+        converged,
+        (lo, hi),
+        objective,
+        it_b,
+        status,
+    )
 
 
-class HeteroscedasticGP:
+def _data_scale(y: NDArray[np.float64]) -> float:
+    """Standard deviation of ``y``; for constant ``y`` its magnitude (1 if it is 0)."""
+    std = float(np.std(y))
+    if std > 0:
+        return std
+    mag = float(np.max(np.abs(y))) if y.size else 0.0
+    return mag if mag > 0 else 1.0
+
+
+def check_noise_bounds(noise_bounds: Any) -> tuple[float, float]:
+    """``noise_bounds`` as a pair ``0 < low <= high`` of finite floats, or a ValueError."""
+    try:
+        lo, hi = (float(b) for b in noise_bounds)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"noise_bounds must be a pair (low, high) of relative standard deviations, "
+            f"got {noise_bounds!r}"
+        ) from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
+        raise ValueError(f"noise_bounds must satisfy 0 < low <= high, got {noise_bounds!r}")
+    return lo, hi
+
+
+def em_warning(status: str, where: str) -> None:
+    """Emit the :class:`ConvergenceWarning` of an EM that stopped without converging."""
+    warnings.warn(
+        f"{where}: the heteroscedastic EM stopped without converging ({status}); the model of "
+        "the iteration with the best objective (log p(y | X, R)) is kept. Raise max_em_iter or "
+        "tol to silence this.",
+        ConvergenceWarning,
+        stacklevel=3,
+    )
+
+
+class HeteroscedasticGP(ParamsMixin):
     """GP with input-dependent noise ``r(x)`` learnt by most-likely EM (Kersting et al. 2007).
 
     Args:
         kernel: kernel of the first (homoscedastic) GP, e.g. Eq. (10); its WhiteNoise terms are
             dropped once ``R`` takes over. Default ``SquaredExponential(1, 1) + WhiteNoise(0.1)``.
         noise_kernel: kernel of the z-process (log noise). Default
-            ``SquaredExponential(1, 1) + WhiteNoise(0.5)``.
+            (``None``): :func:`default_noise_kernel`, built from the fitted signal length scale.
+        noise_bounds: ``(low, high)`` bounds of the noise standard deviation ``sqrt(r(x))``
+            relative to the standard deviation of ``y`` (default :data:`NOISE_BOUNDS`). Every
+            predicted std therefore lies in ``[low, sqrt(v_max + high^2)]`` times ``std(y)``,
+            ``v_max`` the upper bound of the signal variance (normalised units).
         optimizer, n_restarts, max_iter, collapse_replicates: as in
             :class:`~lgp_policy.gp.GaussianProcess`, for both GPs.
         normalize_y: standardise ``y`` first; ``r(x)`` is reported in units of ``y``.
@@ -214,19 +391,29 @@ class HeteroscedasticGP:
     Duplicated inputs are replicates (see :class:`~lgp_policy.gp.GaussianProcess`); the noise
     estimate at an input averages its replicates. Multiple targets are fitted as independent
     models (one noise process each), kept in ``estimators_`` (``None`` for a single target).
+    An EM that stops without converging (its objective decreased, or ``max_em_iter`` was
+    reached) keeps its best iteration and emits a :class:`ConvergenceWarning`.
 
     Attributes:
-        gp_: final GP of ``f`` with ``alpha = r(x_i)`` (normalised units).
-        noise_gp_: the z-process, fitted to ``log r - noise_offset_``.
+        gp_: final GP of ``f`` with ``alpha = r(x_i)`` (normalised units); the homoscedastic GP
+            of step 1 when no EM iteration improved on it.
+        noise_gp_: the z-process, fitted to ``log r - noise_offset_`` (``None`` when the
+            homoscedastic GP was kept: ``r`` is then the constant ``exp(noise_offset_)``).
         homoscedastic_kernel_: the kernel of step 1 after fitting.
         n_iter_, converged_: EM iterations run and whether ``tol`` was met.
+        em_objective_: the objective after each iteration (index 0: homoscedastic GP).
+        em_best_iter_: the iteration kept. ``em_status_``: why the EM stopped.
+        log_noise_bounds_: bounds of ``log r`` in normalised units.
     """
+
+    estimators_: list[HeteroscedasticGP] | None
 
     def __init__(
         self,
         kernel: Kernel | None = None,
         *,
         noise_kernel: Kernel | None = None,
+        noise_bounds: tuple[float, float] = NOISE_BOUNDS,
         optimizer: Optimizer = "L-BFGS-B",
         n_restarts: int = 0,
         normalize_y: bool = True,
@@ -239,6 +426,7 @@ class HeteroscedasticGP:
     ) -> None:
         self.kernel = kernel
         self.noise_kernel = noise_kernel
+        self.noise_bounds = noise_bounds
         self.optimizer = optimizer
         self.n_restarts = n_restarts
         self.normalize_y = normalize_y
@@ -249,40 +437,7 @@ class HeteroscedasticGP:
         self.max_iter = max_iter
         self.random_state = random_state
 
-    def get_params(self, deep: bool = False) -> dict[str, Any]:
-        return {
-            "kernel": self.kernel,
-            "noise_kernel": self.noise_kernel,
-            "optimizer": self.optimizer,
-            "n_restarts": self.n_restarts,
-            "normalize_y": self.normalize_y,
-            "max_em_iter": self.max_em_iter,
-            "tol": self.tol,
-            "n_samples": self.n_samples,
-            "collapse_replicates": self.collapse_replicates,
-            "max_iter": self.max_iter,
-            "random_state": self.random_state,
-        }
-
-    def _gp(self, kernel: Kernel, alpha: Any = 0.0, normalize_y: bool = False, seed=None):
-        return GaussianProcess(
-            kernel,
-            optimizer=self.optimizer,
-            n_restarts=self.n_restarts,
-            normalize_y=normalize_y,
-            alpha=alpha,
-            collapse_replicates=self.collapse_replicates,
-            max_iter=self.max_iter,
-            random_state=seed,
-        )
-
-    def fit(self, X: ArrayLike, y: ArrayLike) -> HeteroscedasticGP:
-        """Fit to ``X (n_samples, n_features)``, ``y (n_samples,)`` or ``(n_samples, n_targets)``.
-
-        Returns:
-            self
-        """
-        X, y = check_X_y(X, y)
+    def _check_params(self) -> None:
         if not isinstance(self.max_em_iter, (int, np.integer)) or self.max_em_iter < 1:
             raise ValueError(f"max_em_iter must be a positive int, got {self.max_em_iter!r}")
         if not np.isfinite(self.tol) or self.tol <= 0:
@@ -291,12 +446,23 @@ class HeteroscedasticGP:
             not isinstance(self.n_samples, (int, np.integer)) or self.n_samples < 1
         ):
             raise ValueError(f"n_samples must be None or a positive int, got {self.n_samples!r}")
+        check_noise_bounds(self.noise_bounds)
+
+    @with_single_blas_thread
+    def fit(self, X: ArrayLike, y: ArrayLike) -> HeteroscedasticGP:
+        """Fit to ``X (n_samples, n_features)``, ``y (n_samples,)`` or ``(n_samples, n_targets)``.
+
+        Returns:
+            self
+        """
+        X, y = check_X_y(X, y)
+        self._check_params()
         self.n_features_in_ = X.shape[1]
         self.X_train_, self.y_train_ = X, y
         rng = check_random_state(self.random_state)
         self._single_target = y.ndim == 1
         if y.ndim == 2 and y.shape[1] > 1:
-            params = self.get_params()
+            params = self.get_params(deep=False)
             self.estimators_ = []
             for j in range(y.shape[1]):
                 params["random_state"] = rng
@@ -307,19 +473,18 @@ class HeteroscedasticGP:
         return self
 
     def _fit_single(self, X, y, rng: np.random.Generator) -> None:
+        scale = _data_scale(y)
         if self.normalize_y:
-            self._y_mean = float(y.mean())
-            std = float(y.std())
-            self._y_std = std if std > 0 else 1.0
+            self._y_mean, self._y_std, work = float(y.mean()), scale, 1.0
         else:
-            self._y_mean, self._y_std = 0.0, 1.0
+            self._y_mean, self._y_std, work = 0.0, 1.0, scale
         yn = (y - self._y_mean) / self._y_std
+        lo, hi = check_noise_bounds(self.noise_bounds)
         kernel = default_kernel() if self.kernel is None else self.kernel
-        noise_kernel = default_noise_kernel() if self.noise_kernel is None else self.noise_kernel
         result = most_likely_em(
             [(X, yn)],
             kernel,
-            noise_kernel,
+            self.noise_kernel,
             learn=self.optimizer is not None,
             optimizer=self.optimizer,
             n_restarts=self.n_restarts,
@@ -329,16 +494,23 @@ class HeteroscedasticGP:
             collapse_replicates=self.collapse_replicates,
             max_iter=self.max_iter,
             random_state=rng,
+            log_noise_bounds=(2 * math.log(lo * work), 2 * math.log(hi * work)),
         )
         self._set_state(result, 0)
+        if not result.converged:
+            em_warning(result.status, type(self).__name__)
 
     def _set_state(self, result: EMResult, index: int) -> None:
         self.gp_ = result.gps[index]
         self.noise_gp_ = result.noise_gps[index]
-        self.noise_offset_ = float(result.noise_offsets[index])
+        self.noise_offset_ = float(result.noise_offset)
         self.homoscedastic_kernel_ = result.homoscedastic_kernel
         self.n_iter_ = result.n_iter
         self.converged_ = result.converged
+        self.em_objective_ = list(result.objective)
+        self.em_best_iter_ = result.best_iter
+        self.em_status_ = result.status
+        self.log_noise_bounds_ = result.log_noise_bounds
 
     @classmethod
     def _from_em(
@@ -360,19 +532,23 @@ class HeteroscedasticGP:
             raise ValueError(f"This {type(self).__name__} is not fitted yet; call fit(X, y) first")
 
     def _stack(self, method: str, X, **kw):
-        outs = [getattr(est, method)(X, **kw) for est in self.estimators_]
+        outs = [getattr(est, method)(X, **kw) for est in self.estimators_ or []]
         if isinstance(outs[0], tuple):
             return tuple(np.stack(parts, axis=1) for parts in zip(*outs, strict=True))
         return np.stack(outs, axis=1)
 
     def _log_noise_normalized(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
-        return self.noise_gp_.predict(X) + self.noise_offset_
+        """``log r(X)`` in normalised units, within ``log_noise_bounds_`` (never overflows)."""
+        if self.noise_gp_ is None:
+            return np.full(X.shape[0], self.noise_offset_)
+        return np.clip(self.noise_gp_.predict(X) + self.noise_offset_, *self.log_noise_bounds_)
 
     def _predict_normalized(self, X: NDArray[np.float64]):
         """Latent mean ``(n,)``, latent variance ``(n,)`` and r(x) ``(n,)``, normalised units."""
         mean, var = self.gp_._predict_normalized(X)
         return mean[:, 0], var, np.exp(self._log_noise_normalized(X))
 
+    @with_single_blas_thread
     def predict(self, X: ArrayLike, return_std: bool = False):
         """Mean (Eq. 5) and, with ``return_std``, the std of Eq. (6): ``sqrt(var_f + r(x))``."""
         self._check_fitted()
@@ -385,6 +561,7 @@ class HeteroscedasticGP:
             return mean
         return mean, np.sqrt(var + r) * self._y_std  # Eq. (6)
 
+    @with_single_blas_thread
     def predict_latent(self, X: ArrayLike):
         """Mean and noise-free std of ``f(X)``."""
         self._check_fitted()
@@ -394,6 +571,7 @@ class HeteroscedasticGP:
         mean, var, _ = self._predict_normalized(X)
         return mean * self._y_std + self._y_mean, np.sqrt(var) * self._y_std
 
+    @with_single_blas_thread
     def noise_variance(self, X: ArrayLike) -> NDArray[np.float64]:
         """r(x) at new inputs (Eq. 6's ``R*``), in units of y^2: ``(n,)`` or ``(n, n_targets)``."""
         self._check_fitted()

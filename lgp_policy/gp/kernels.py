@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy.gp._base import ParamsMixin
 from lgp_policy.gp._validation import check_positive
 
 __all__ = ["Kernel", "SquaredExponential", "Sum", "WhiteNoise"]
@@ -48,7 +49,7 @@ def _as_2d(X: ArrayLike, name: str) -> NDArray[np.float64]:
     return arr
 
 
-class Kernel(ABC):
+class Kernel(ParamsMixin, ABC):
     """Base class: a covariance function with hyperparameters ``theta`` in log space."""
 
     #: True for kernels that model observation noise (a Kronecker delta); the GP treats them
@@ -84,10 +85,6 @@ class Kernel(ABC):
     def diag(self, X: ArrayLike) -> NDArray[np.float64]:
         """``diag(k(X))``, shape ``(n_samples,)``."""
 
-    @abstractmethod
-    def get_params(self) -> dict[str, Any]:
-        """Constructor arguments (so ``type(k)(**k.get_params())`` copies the kernel)."""
-
     @property
     def n_dims(self) -> int:
         return int(self.theta.shape[0])
@@ -104,7 +101,8 @@ class Kernel(ABC):
 
     def clone(self) -> Kernel:
         params = {
-            k: (v.clone() if isinstance(v, Kernel) else v) for k, v in self.get_params().items()
+            k: (v.clone() if isinstance(v, Kernel) else v)
+            for k, v in self.get_params(deep=False).items()
         }
         return type(self)(**params)
 
@@ -114,7 +112,9 @@ class Kernel(ABC):
         return Sum(self, other)
 
     def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items() if "bounds" not in k)
+        args = ", ".join(
+            f"{k}={v!r}" for k, v in self.get_params(deep=False).items() if "bounds" not in k
+        )
         return f"{type(self).__name__}({args})"
 
 
@@ -139,15 +139,18 @@ class SquaredExponential(Kernel):
         variance_bounds: Bounds = (1e-5, 1e5),
         length_scale_bounds: Bounds = (1e-5, 1e5),
     ) -> None:
-        self.variance = float(check_positive(variance, "variance").reshape(-1)[0])
+        # Arguments are checked here and stored unchanged (scikit-learn's clone contract).
+        check_positive(variance, "variance")
         if np.ndim(variance) != 0:
             raise ValueError(f"variance must be a scalar, got {variance!r}")
-        ls = check_positive(length_scale, "length_scale")
-        if ls.ndim > 1:
+        if check_positive(length_scale, "length_scale").ndim > 1:
             raise ValueError(f"length_scale must be a float or a 1-D array, got {length_scale!r}")
-        self.length_scale = float(ls) if ls.ndim == 0 else ls.copy()
-        self.variance_bounds = tuple(_check_bounds(variance_bounds, "variance_bounds"))
-        self.length_scale_bounds = tuple(_check_bounds(length_scale_bounds, "length_scale_bounds"))
+        _check_bounds(variance_bounds, "variance_bounds")
+        _check_bounds(length_scale_bounds, "length_scale_bounds")
+        self.variance = variance
+        self.length_scale = length_scale
+        self.variance_bounds = variance_bounds
+        self.length_scale_bounds = length_scale_bounds
 
     @property
     def anisotropic(self) -> bool:
@@ -174,7 +177,7 @@ class SquaredExponential(Kernel):
     @property
     def hyperparameter_names(self) -> list[str]:
         if self.anisotropic:
-            return ["variance"] + [f"length_scale[{i}]" for i in range(len(self.length_scale))]
+            return ["variance"] + [f"length_scale[{i}]" for i in range(np.size(self.length_scale))]
         return ["variance", "length_scale"]
 
     def _scaled(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -230,14 +233,6 @@ class SquaredExponential(Kernel):
         d2 *= K
         return K, [K, d2]
 
-    def get_params(self) -> dict[str, Any]:
-        return {
-            "variance": self.variance,
-            "length_scale": self.length_scale,
-            "variance_bounds": self.variance_bounds,
-            "length_scale_bounds": self.length_scale_bounds,
-        }
-
 
 class WhiteNoise(Kernel):
     """White-noise kernel, the ``delta_pq sigma_n^2`` term of Eq. (10).
@@ -256,8 +251,10 @@ class WhiteNoise(Kernel):
     ) -> None:
         if np.ndim(noise_level) != 0:
             raise ValueError(f"noise_level must be a scalar, got {noise_level!r}")
-        self.noise_level = float(check_positive(noise_level, "noise_level"))
-        self.noise_level_bounds = tuple(_check_bounds(noise_level_bounds, "noise_level_bounds"))
+        check_positive(noise_level, "noise_level")
+        _check_bounds(noise_level_bounds, "noise_level_bounds")
+        self.noise_level = noise_level
+        self.noise_level_bounds = noise_level_bounds
 
     @property
     def theta(self) -> NDArray[np.float64]:
@@ -292,9 +289,6 @@ class WhiteNoise(Kernel):
     def diag(self, X):
         X = _as_2d(X, "X")
         return np.full(X.shape[0], self.noise_level)
-
-    def get_params(self) -> dict[str, Any]:
-        return {"noise_level": self.noise_level, "noise_level_bounds": self.noise_level_bounds}
 
 
 class Sum(Kernel):
@@ -345,9 +339,6 @@ class Sum(Kernel):
 
     def diag(self, X):
         return self.k1.diag(X) + self.k2.diag(X)
-
-    def get_params(self) -> dict[str, Any]:
-        return {"k1": self.k1, "k2": self.k2}
 
     def __repr__(self) -> str:
         return f"{self.k1!r} + {self.k2!r}"

@@ -1,4 +1,5 @@
-"""Demonstrations as plain arrays: the input of :class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy`.
+"""Demonstrations as plain arrays, the input of
+:class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy`.
 
 A :class:`Trajectory` is one demonstration of ``n`` steps:
 
@@ -30,7 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -38,7 +39,7 @@ from scipy.spatial.transform import Rotation
 
 __all__ = ["FrameLike", "Trajectory", "TrajectorySet", "as_rotation_matrices"]
 
-FrameLike = tuple[ArrayLike, Union[ArrayLike, Rotation]]
+FrameLike = tuple[ArrayLike, ArrayLike | Rotation]
 """A frame as given: ``(position, rotation)``, per step or constant."""
 
 
@@ -54,7 +55,9 @@ def as_rotation_matrices(rotation: ArrayLike | Rotation, n: int, d: int, name: s
     if R.shape == (d, d):
         R = np.broadcast_to(R, (n, d, d))
     if R.shape != (n, d, d):
-        raise ValueError(f"frame {name!r}: rotation must be ({d}, {d}) or ({n}, {d}, {d}), got {R.shape}")
+        raise ValueError(
+            f"frame {name!r}: rotation must be ({d}, {d}) or ({n}, {d}, {d}), got {R.shape}"
+        )
     if not np.all(np.isfinite(R)):
         raise ValueError(f"frame {name!r}: rotation contains NaN or inf")
     err = np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(d)).max()
@@ -79,13 +82,11 @@ class Trajectory:
     Attributes are stored converted: ``frames[name] = (position (n, d), rotation (n, d, d))``.
     """
 
-    time: NDArray[np.float64]
-    state: NDArray[np.float64]
-    frames: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
-        default_factory=dict
-    )
-    gripper: NDArray[np.float64] | None = None
-    actions: NDArray[np.float64] | None = None
+    time: NDArray[Any]
+    state: NDArray[Any]
+    frames: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]] = field(default_factory=dict)
+    gripper: NDArray[Any] | None = None
+    actions: NDArray[Any] | None = None
     events: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
     success: bool = True
 
@@ -104,7 +105,10 @@ class Trajectory:
             self.actions = _steps("actions", self.actions, n)
         frames = {}
         if not isinstance(self.frames, Mapping):
-            raise TypeError(f"frames must be a mapping name -> (position, rotation), got {type(self.frames).__name__}")
+            raise TypeError(
+                "frames must be a mapping name -> (position, rotation), got "
+                f"{type(self.frames).__name__}"
+            )
         for name, frame in self.frames.items():
             if not isinstance(name, str) or not name:
                 raise ValueError(f"frame names must be non-empty strings, got {name!r}")
@@ -116,7 +120,10 @@ class Trajectory:
             if p.ndim == 1:
                 p = np.broadcast_to(p, (n, p.size))
             if p.ndim != 2 or p.shape[0] != n or p.shape[1] not in (2, 3):
-                raise ValueError(f"frame {name!r}: position must be (d,) or ({n}, d) with d 2 or 3, got {np.shape(pos)}")
+                raise ValueError(
+                    f"frame {name!r}: position must be (d,) or ({n}, d) with d 2 or 3, got "
+                    f"{np.shape(pos)}"
+                )
             if not np.all(np.isfinite(p)):
                 raise ValueError(f"frame {name!r}: position contains NaN or inf")
             frames[name] = (np.ascontiguousarray(p), as_rotation_matrices(rot, n, p.shape[1], name))

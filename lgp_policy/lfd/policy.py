@@ -23,8 +23,10 @@ Per step, for each observation:
 
 1. **phase**: ``s = (tau + lookahead * control_dt) / duration`` with ``tau`` the episode's task
    clock (the observation's time, or counted control steps), clipped to ``[0, 1]``. The clock
-   *waits* (event-driven phase) while an event the demonstrations reached by phase ``s_e``
-   (e.g. ``cup_held``) has not been observed yet in this episode, for at most ``max_wait`` s;
+   *waits* (event-driven phase): just before each demonstrated gripper event (closing, opening)
+   until the grasp point is within ``reach_tolerance`` of the target of the frame that is
+   tightest there, and while an event the demonstrations reached by phase ``s_e`` (e.g.
+   ``cup_held``) has not been observed yet in this episode; at most ``max_wait`` s in all;
 2. **frames**: each frame's pose is filtered over the episode (a static-object Kalman filter with
    measurement std ``frame_noise``; a jump of the object is detected and followed); where the
    adapter says a frame is not observed (a grasped cup) its last estimate is kept;
@@ -62,14 +64,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, parse_json, read_npz
+from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, read_npz
+from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
 from lgp_policy.lfd.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
-    MIN_VARIANCE,
     frame_targets,
     limit_step,
     reproduction_step,
@@ -90,7 +92,6 @@ FORMAT_NAME = "lgp_policy.gp_demonstration_policy"
 SCHEMA_VERSION = 2
 _READABLE_VERSIONS = (1, 2)
 MODELS = ("local", "heteroscedastic", "exact", "empirical")
-COMBINES = ("product", "calibrated")
 #: Bounds on numbers read from files or given to the constructor.
 MAX_GRID = 100_000
 MAX_STEPS = 100_000
@@ -137,6 +138,7 @@ class PolicyState:
         last_time: ``(n,)`` time of the last observation (s).
         waited: ``(n,)`` time spent waiting for events (s).
         seen: per event, ``(n,)`` whether it has been observed in this episode.
+        reached: per gripper landmark (index), ``(n,)`` whether the hand reached its target.
         position, variance, rotation: per frame, the filtered pose ``(n, d)``, its variance
             ``(n,)`` and the last observed rotation ``(n, d, d)``.
         outliers: per frame, ``(n,)`` consecutive observations outside the filter's gate.
@@ -148,6 +150,7 @@ class PolicyState:
     waited: NDArray[np.float64]
     fresh: NDArray[np.bool_]
     seen: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
+    reached: dict[int, NDArray[np.bool_]] = field(default_factory=dict)
     position: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     variance: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     rotation: dict[str, NDArray[np.float64]] = field(default_factory=dict)
@@ -201,12 +204,18 @@ def _finite(name: str, value: Any, low: float, high: float, *, low_open: bool = 
     ok = math.isfinite(v) and (v > low if low_open else v >= low) and v <= high
     if not ok or isinstance(value, bool):
         bracket = "(" if low_open else "["
-        raise ValueError(f"{name} must be a finite number in {bracket}{low}, {high}], got {value!r}")
+        raise ValueError(
+            f"{name} must be a finite number in {bracket}{low}, {high}], got {value!r}"
+        )
     return v
 
 
 def _integer(name: str, value: Any, low: int, high: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not low <= value <= high
+    ):
         raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
     return int(value)
 
@@ -238,8 +247,16 @@ def hand_points(
         return p, Jp
     z = R[:, :, -1]
     Jw = J6[:, d:]  # (n, 3, k)
-    cross = np.cross(np.swapaxes(Jw, 1, 2), z[:, None, :])  # omega_i x z, (n, k, 3)
-    J2 = Jp - offset * np.swapaxes(cross, 1, 2)
+    zx, zy, zz = z[:, 0:1], z[:, 1:2], z[:, 2:3]  # omega_i x z for every column i, (n, 3, k)
+    cross = np.stack(
+        [
+            Jw[:, 1] * zz - Jw[:, 2] * zy,
+            Jw[:, 2] * zx - Jw[:, 0] * zz,
+            Jw[:, 0] * zy - Jw[:, 1] * zx,
+        ],
+        axis=1,
+    )
+    J2 = Jp - offset * cross
     return np.concatenate([p, p - offset * z], axis=1), np.concatenate([Jp, J2], axis=1)
 
 
@@ -268,14 +285,14 @@ class GPDemonstrationPolicy:
     Args (keyword-only after ``robot`` and ``adapter``):
 
     =============== ===================================================================
-    robot           kinematics (:class:`~lgp_policy.lfd.robots.RobotModel`); default
-                    ``adapter.robot``
-    adapter         how observations are read (:class:`~lgp_policy.lfd.adapters.ObservationAdapter`);
+    robot           kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
+    adapter         how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
                     default the gym-coffee adapter
     n_steps         ``T``, resampled points per demonstration (encoding), >= 2
     n_grid          points of the precomputed phase table used by ``predict``, >= 2
     model           encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``, ``empirical``
-    combine         ``LocalGP`` combination: ``product`` (Eqs. 8-9) or ``calibrated``
+    combine         ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
+                    the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
     frames          frames to use (default: all in the demonstrations); ``()`` = state only
     alpha           null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
     null_space_std  ``None``: a frame's null-space information = the joint estimate's; or a std
@@ -289,7 +306,11 @@ class GPDemonstrationPolicy:
                     approach axis (task vector p = 6), or ``None``: position only (the paper)
     frame_noise     std (m) of the observed frame positions for the online filter; 0 = trust
                     every observation
-    max_wait        s; longest time the phase waits for a demonstrated event; 0 = clock only
+    max_wait        s; longest time per episode the phase waits (for the hand to reach the
+                    target before a gripper event, and for a demonstrated event); 0 = clock only
+    reach_tolerance m; before a demonstrated gripper event the phase waits until the grasp point
+                    is this close (or within 3 predicted std) to the target of the tightest frame
+                    at that event
     encoder_kwargs  extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
     =============== ===================================================================
 
@@ -299,6 +320,8 @@ class GPDemonstrationPolicy:
         demonstration duration (s); ``control_dt_``: control period (s).
         approach_offset_: the resolved approach offset (m or ``None``).
         event_phases_: per event, the latest phase at which a demonstration first showed it.
+        landmarks_: ``[(phase, frame), ...]``: the aligned gripper events and the frame that is
+            tightest at each (where the phase waits for the hand to arrive).
         constraints_: the constraint report (see :meth:`constraint_report`).
         encoder_: the fitted encoder (only after ``fit``; not saved).
     """
@@ -311,7 +334,7 @@ class GPDemonstrationPolicy:
         n_steps: int = 200,
         n_grid: int = 500,
         model: str = "local",
-        combine: str = "product",
+        combine: str = DEFAULT_COMBINE,
         frames: Sequence[str] | None = None,
         alpha: float = DEFAULT_ALPHA,
         null_space_std: float | None = None,
@@ -322,6 +345,7 @@ class GPDemonstrationPolicy:
         align: str | None = "gripper",
         frame_noise: float = 0.005,
         max_wait: float = 2.0,
+        reach_tolerance: float = 0.01,
         encoder_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         self.robot = robot
@@ -330,8 +354,8 @@ class GPDemonstrationPolicy:
         self.n_grid = _integer("n_grid", n_grid, 2, MAX_GRID)
         if model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {model!r}")
-        if combine not in COMBINES:
-            raise ValueError(f"combine must be one of {COMBINES}, got {combine!r}")
+        if combine not in COMBINE_RULES:
+            raise ValueError(f"combine must be one of {COMBINE_RULES}, got {combine!r}")
         self.model, self.combine = model, combine
         if frames is not None and (
             isinstance(frames, str) or not all(isinstance(f, str) for f in frames)
@@ -358,6 +382,7 @@ class GPDemonstrationPolicy:
         self.align = align
         self.frame_noise = _finite("frame_noise", frame_noise, 0.0, 10.0, low_open=False)
         self.max_wait = _finite("max_wait", max_wait, 0.0, 1e4, low_open=False)
+        self.reach_tolerance = _finite("reach_tolerance", reach_tolerance, 0.0, 10.0)
         self.encoder_kwargs = None if encoder_kwargs is None else dict(encoder_kwargs)
 
     # -------------------------------------------------------------- parameters
@@ -378,6 +403,7 @@ class GPDemonstrationPolicy:
             "align": self.align,
             "frame_noise": self.frame_noise,
             "max_wait": self.max_wait,
+            "reach_tolerance": self.reach_tolerance,
             "encoder_kwargs": None if self.encoder_kwargs is None else dict(self.encoder_kwargs),
         }
 
@@ -386,8 +412,10 @@ class GPDemonstrationPolicy:
         self.adapter_ = self.adapter if self.adapter is not None else _coffee_adapter()
         self.robot_ = self.robot if self.robot is not None else self.adapter_.robot
         self.gripper_ = getattr(self.adapter_, "gripper", None)
-        step = getattr(self.adapter_.action_map, "max_step", None)
-        self.max_joint_step_ = float(self.max_joint_step if self.max_joint_step is not None else step)
+        step = self.max_joint_step
+        self.max_joint_step_ = float(
+            step if step is not None else self.adapter_.action_map.max_step
+        )
 
     def _trajectories(self, demos: Any) -> TrajectorySet:
         if isinstance(demos, TrajectorySet):
@@ -453,13 +481,15 @@ class GPDemonstrationPolicy:
         for n in names:
             d = trajs[0].frames[n][0].shape[1]
             if d != robot.dim:
-                raise ValueError(f"frame {n!r} is {d}-D but the robot's task space is {robot.dim}-D")
+                raise ValueError(
+                    f"frame {n!r} is {d}-D but the robot's task space is {robot.dim}-D"
+                )
         offset = self.approach_offset
         if offset == "auto":
             offset = 0.1 if robot.has_orientation else None
         elif offset is not None and not robot.has_orientation:
             raise ValueError("approach_offset needs a robot with a hand orientation; use None")
-        self.approach_offset_ = offset
+        self.approach_offset_: float | None = offset  # type: ignore[assignment]
         if (self.gripper_ is None) != (trajs[0].gripper is None):
             raise ValueError(
                 "the demonstrations and the adapter disagree on the gripper: "
@@ -471,7 +501,11 @@ class GPDemonstrationPolicy:
             tr.state if tr.gripper is None else np.column_stack([tr.state, tr.gripper])
             for tr in trajs
         ]
-        ees = [hand_points(robot, tr.state, offset)[0] for tr in trajs] if names else None
+        ees = (
+            [hand_points(robot, tr.state, self.approach_offset_)[0] for tr in trajs]
+            if names
+            else None
+        )
         frames = [{n: tr.initial_frames()[n] for n in names} for tr in trajs] if names else None
         kwargs = dict(self.encoder_kwargs or {})
         kwargs.setdefault("n_steps", self.n_steps)
@@ -505,6 +539,14 @@ class GPDemonstrationPolicy:
             _event_phases(tr, phase_of(tr.time, landmarks[i] if landmarks else None, lp))
             for i, tr in enumerate(trajs)
         ]
+        self.landmarks_ = []
+        if landmarks is not None and names:
+            for s_l in encoder.landmark_phases_:
+                spread = {
+                    n: float(np.sqrt(np.mean(encoder.predict([s_l], n)[1][0, : robot.dim] ** 2)))
+                    for n in names
+                }
+                self.landmarks_.append((float(s_l), min(spread, key=spread.__getitem__)))
         self.event_phases_ = {}
         for ev in trajs[0].events:
             vals = [p.get(ev) for p in self.stage_phases_]
@@ -573,35 +615,70 @@ class GPDemonstrationPolicy:
         return float(s[0]) if single else s
 
     def _advance(
-        self, state: PolicyState, t_obs: NDArray[np.float64] | None, observed: Any
-    ) -> NDArray[np.float64]:
-        """Update the per-environment clock, events and frame filters; return the task clock."""
+        self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Update the per-environment clock, frame filters and events.
+
+        ``hand``: the grasp point ``(n, d)`` (for the waits before gripper events).
+
+        Returns:
+            ``(clock (n,), aim (n,))``: the task clock, and for rows waiting to reach the target
+            of a gripper event the phase of that event (the motion aims there while the gripper
+            keeps its command), else NaN.
+        """
+        t_obs = observed.time
+        n = len(state)
         fresh = state.fresh.copy()
         if t_obs is not None:
             fresh |= t_obs < state.last_time - 1e-9
             dt = np.where(fresh, 0.0, t_obs - state.last_time)
             now = t_obs
+            clock = np.where(fresh, t_obs, state.clock + dt)
         else:
             dt = np.where(fresh, 0.0, self.control_dt_)
             now = np.where(fresh, 0.0, state.last_time + self.control_dt_)
-        start = np.where(fresh, now if t_obs is not None else 0.0, 0.0)
-        clock = np.where(fresh, start, state.clock + dt)
+            clock = np.where(fresh, 0.0, state.clock + dt)
+        self._filter_frames(state, fresh, observed)
         waited = np.where(fresh, 0.0, state.waited)
-        hold = np.zeros(len(clock), dtype=bool)
-        for ev, s_e in self.event_phases_.items():
-            flags = observed.events.get(ev)
-            if flags is None or self.max_wait <= 0:
-                continue
-            seen = np.where(fresh, False, state.seen.get(ev, np.zeros(len(clock), bool))) | flags
-            state.seen[ev] = seen
-            hold |= ~seen & (clock / self.duration_ >= s_e)
+        s = clock / self.duration_
+        hold = np.zeros(n, dtype=bool)
+        aim = np.full(n, np.nan)
+        if self.max_wait > 0:
+            lead = (self.lookahead + 1.0) * self.control_dt_ / self.duration_
+            for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
+                reached = np.where(fresh, False, state.reached.get(j, np.zeros(n, bool)))
+                due = ~reached & (s >= s_l - lead)
+                if np.any(due) and hand is not None:
+                    mcol, vcol = self._cols[frame]
+                    row = self._rows(np.full(n, s_l))
+                    d = hand.shape[1]
+                    target, _ = frame_targets(
+                        state.position[frame],
+                        state.rotation[frame],
+                        row[:, mcol][:, :d],
+                        row[:, vcol][:, :d],
+                    )
+                    # a frame that is loose there (demonstrations disagree) asks for no precision
+                    spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
+                    tol = np.maximum(self.reach_tolerance, 3.0 * spread)
+                    close = np.linalg.norm(hand - target, axis=1) <= tol
+                    reached = reached | (due & close)
+                    hold |= due & ~close
+                    aim = np.where(due & ~close & np.isnan(aim), s_l, aim)
+                state.reached[j] = reached
+            for ev, s_e in self.event_phases_.items():
+                flags = observed.events.get(ev)
+                if flags is None:
+                    continue
+                seen = np.where(fresh, False, state.seen.get(ev, np.zeros(n, bool))) | flags
+                state.seen[ev] = seen
+                hold |= ~seen & (s >= s_e)
         hold &= (waited + dt <= self.max_wait) & ~fresh
         state.clock = np.where(hold, clock - dt, clock)
         state.waited = np.where(hold, waited + dt, waited)
         state.last_time = now
-        self._filter_frames(state, fresh, observed)
-        state.fresh = np.zeros(len(clock), dtype=bool)
-        return state.clock
+        state.fresh = np.zeros(n, dtype=bool)
+        return state.clock, np.where(hold, aim, np.nan)
 
     def _filter_frames(self, state: PolicyState, fresh: NDArray[np.bool_], observed: Any) -> None:
         r = self.frame_noise**2
@@ -670,23 +747,34 @@ class GPDemonstrationPolicy:
         n = obs.shape[0]
         mem, own = self._state_for(n, state, episode_start)
         observed = self.adapter_.read(obs)
-        clock = self._advance(mem, observed.time, observed)
+        q = np.asarray(observed.state, dtype=float)
+        if q.shape != (n, self.robot_.n_joints):
+            raise ValueError(
+                f"the adapter read a state of shape {q.shape}; the robot has "
+                f"{self.robot_.n_joints} coordinates"
+            )
+        x = J = None
+        if len(self.frame_names_) > 1:
+            x, J = hand_points(self.robot_, q, self.approach_offset_)
+        clock, aim = self._advance(mem, observed, None if x is None else x[:, : self.robot_.dim])
         if own:
             self._memory = mem
         s = (clock + self.lookahead * self.control_dt_) / self.duration_
         row = self._rows(s)
-        q = np.asarray(observed.state, dtype=float)
         k = q.shape[1]
         jm, jv = self._cols[JOINT_FRAME]
+        grip_row = row
+        if np.any(~np.isnan(aim)):  # waiting to reach a gripper event's target: aim at it
+            row = self._rows(np.where(np.isnan(aim), s, aim))
         joint_mean, joint_var = row[:, jm], row[:, jv]
         targets = []
-        x = J = None
-        if len(self.frame_names_) > 1:
-            x, J = hand_points(self.robot_, q, self.approach_offset_)
+        if x is not None:
             for name in self.frame_names_[1:]:
                 mcol, vcol = self._cols[name]
                 targets.append(
-                    frame_targets(mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol])
+                    frame_targets(
+                        mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol]
+                    )
                 )
         dq, fused = reproduction_step(
             q,
@@ -701,7 +789,7 @@ class GPDemonstrationPolicy:
             ridge=DEFAULT_RIDGE,
             return_cov=cov,
         )
-        gripper = joint_mean[:, k] if joint_mean.shape[1] > k else np.zeros(n)
+        gripper = grip_row[:, jm][:, k] if joint_mean.shape[1] > k else np.zeros(n)
         action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
         return single, mem, np.clip(s, 0.0, 1.0), action, dq, fused, gripper, row
 
@@ -831,6 +919,7 @@ class GPDemonstrationPolicy:
             "alignment": getattr(self, "alignment_", "none"),
             "stage_phases": getattr(self, "stage_phases_", []),
             "event_phases": self.event_phases_,
+            "landmarks": [[s_l, f] for s_l, f in self.landmarks_],
             "constraints": self.constraints_,
         }
         arrays: dict[str, NDArray[Any]] = {
@@ -874,13 +963,15 @@ class GPDemonstrationPolicy:
     ) -> GPDemonstrationPolicy:
         if "metadata" not in arrays:
             raise PolicyFileError("no 'metadata' entry; not a GPDemonstrationPolicy file")
-        try:
-            meta = parse_json(str(arrays["metadata"]), where="metadata")
-        except FileFormatError as exc:
-            raise PolicyFileError(str(exc)) from None
+        try:  # NaN/Infinity parse here and are refused below, naming their field
+            meta = json.loads(str(arrays["metadata"]))
+        except (ValueError, RecursionError) as exc:
+            raise PolicyFileError(f"metadata is not valid JSON ({str(exc)[:200]})") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
             found = meta.get("format") if isinstance(meta, dict) else None
-            raise PolicyFileError(f"not a GPDemonstrationPolicy file (format {found!r})")
+            raise PolicyFileError(
+                f"not a GPDemonstrationPolicy file (metadata 'format' is {found!r})"
+            )
         version = meta.get("schema_version")
         if version not in _READABLE_VERSIONS or isinstance(version, bool):
             raise PolicyFileError(
@@ -920,7 +1011,9 @@ class GPDemonstrationPolicy:
             or not all(isinstance(n, str) for n in names)
             or len(set(names)) != len(names)
         ):
-            raise PolicyFileError(f"frame_names must be distinct names starting with {JOINT_FRAME!r}")
+            raise PolicyFileError(
+                f"frame_names must be distinct names starting with {JOINT_FRAME!r}"
+            )
         known = tuple(getattr(policy.adapter_, "frame_names", ()))
         unknown = [n for n in names[1:] if n not in known]
         if unknown:
@@ -946,7 +1039,8 @@ class GPDemonstrationPolicy:
             raise PolicyFileError("'phase_grid' must be an increasing 1-D float array in [0, 1]")
         k = policy.robot_.n_joints + (policy.gripper_ is not None)
         d = policy.robot_.dim * (2 if offset is not None else 1)
-        mean, std = {}, {}
+        mean: dict[str, NDArray[np.float64]] = {}
+        std: dict[str, NDArray[np.float64]] = {}
         for name in names:
             want = k if name == JOINT_FRAME else d
             for kind, store in (("mean", mean), ("std", std)):
@@ -972,6 +1066,17 @@ class GPDemonstrationPolicy:
                 _finite(f"event_phases[{ev!r}]", s_e, 0.0, 1.0, low_open=False)
             except ValueError as exc:
                 raise PolicyFileError(str(exc)) from None
+        landmarks = meta.get("landmarks", [])
+        if not isinstance(landmarks, list) or not all(
+            isinstance(m, list)
+            and len(m) == 2
+            and isinstance(m[0], (int, float))
+            and not isinstance(m[0], bool)
+            and 0.0 <= m[0] <= 1.0
+            and m[1] in names[1:]
+            for m in landmarks
+        ):
+            raise PolicyFileError("'landmarks' must be a list of [phase in [0, 1], fitted frame]")
         stage_phases = meta.get("stage_phases", [])
         if not isinstance(stage_phases, list) or not all(
             isinstance(p, dict)
@@ -986,6 +1091,7 @@ class GPDemonstrationPolicy:
         policy.duration_ = duration
         policy.control_dt_ = control_dt
         policy.event_phases_ = {str(k): float(v) for k, v in events.items()}
+        policy.landmarks_ = [(float(m[0]), str(m[1])) for m in landmarks]
         n_demos = meta.get("n_demos", 0)
         policy.n_demos_ = int(n_demos) if isinstance(n_demos, int) and n_demos >= 0 else 0
         policy.alignment_ = str(meta.get("alignment", "none"))[:200]

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -147,7 +148,7 @@ def reproduction_step(
     damping: float = DEFAULT_DAMPING,
     ridge: float = DEFAULT_RIDGE,
     return_cov: bool = False,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+) -> tuple[NDArray[Any], NDArray[Any] | None]:
     """One iteration of Algorithm 3's loop (lines 6-19) for a batch of ``n`` robots.
 
     Args:
@@ -196,8 +197,10 @@ def reproduction_step(
     Lam = 0.5 * (Lam + np.swapaxes(Lam, -1, -2))
     if return_cov:
         cov = np.linalg.inv(Lam)
-        return (cov @ eta[:, :, None])[:, :, 0], cov  # line 19
-    return np.linalg.solve(Lam, eta[:, :, None])[:, :, 0], None
+        dq: NDArray[Any] = (cov @ eta[:, :, None])[:, :, 0]  # line 19
+        return dq, cov
+    dq = np.linalg.solve(Lam, eta[:, :, None])[:, :, 0]
+    return dq, None
 
 
 def limit_step(dq: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:

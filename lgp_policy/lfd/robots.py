@@ -156,7 +156,8 @@ class ActionMap(Protocol):
             reproduction scales a larger increment down as a whole (keeping its direction).
     """
 
-    max_step: float
+    @property
+    def max_step(self) -> float: ...
 
     def __call__(
         self, q: NDArray[np.float64], step: NDArray[np.float64], gripper: NDArray[np.float64]

@@ -231,3 +231,27 @@ def test_minari_with_the_env_spec(tmp_path, monkeypatch):
     wrong = DemonstrationSet([make_demo(rng, 5)], metadata={"env_id": ENV_ID})
     with pytest.raises(ValueError, match="observations of 41"):
         export_minari(wrong, "coffee-wrong-v0", root=tmp_path)
+
+
+def test_export_and_import_command_line(demos, tmp_path, capsys, monkeypatch):
+    from lgp_policy.app.cli import main
+
+    src = demos.save(tmp_path / "d.npz")
+    h5 = tmp_path / "d.hdf5"
+    assert main(["export", str(src), "--format", "robomimic", "--out", str(h5)]) == 0
+    assert main(["import", str(h5), "--out", str(tmp_path / "back.npz")]) == 0
+    assert DemonstrationSet.load(tmp_path / "back.npz") == demos
+    assert main(["export", str(src), "--format", "robomimic", "--out", str(h5)]) == 2
+    assert "exists" in capsys.readouterr().err
+    root = tmp_path / "m"
+    minari_args = ["export", str(src), "--format", "minari", "--out", "coffee/cli-v0"]
+    assert main([*minari_args, "--minari-root", str(root)]) == 0
+    assert (root / "coffee" / "cli-v0").is_dir()
+    assert main([*minari_args, "--minari-root", str(root)]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main([*minari_args, "--minari-root", str(root), "--force"]) == 0
+    bad = ["export", str(src), "--format", "minari", "--out", "no good id"]
+    assert main(bad) == 2 and "not a Minari dataset id" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # argparse: not an .hdf5 name
+        main(["import", str(src), "--out", str(tmp_path / "z.npz")])
+    assert exit_info.value.code == 2

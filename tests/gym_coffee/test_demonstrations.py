@@ -313,6 +313,14 @@ def test_wrong_dtype(demos, tmp_path):
     path = demos.save(tmp_path / "d.npz")
     rewrite(path, tmp_path / "w.npz", time=np.array(["a"] * 56))
     assert "'time' has dtype" in load_error(tmp_path / "w.npz")
+    with np.load(path) as npz:
+        stages, actions = npz["stages"], npz["actions"]
+    rewrite(path, tmp_path / "s.npz", stages=stages.astype(float))  # 0.0 / 1.0, not flags
+    assert "'stages' has dtype float64; expected bool" in load_error(tmp_path / "s.npz")
+    rewrite(path, tmp_path / "a.npz", actions=actions.astype(np.int64))
+    assert "'actions' has dtype int64; expected float32" in load_error(tmp_path / "a.npz")
+    rewrite(path, tmp_path / "f.npz", actions=actions.astype(np.float64))  # any float is fine
+    assert DemonstrationSet.load(tmp_path / "f.npz") == demos
 
 
 def test_constructor_validates_shapes():

@@ -6,10 +6,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import gym_coffee  # noqa: F401  (registers the env)
+import gym_coffee
 from gym_coffee.env import OBS_DIM, OBS_SLICES, REWARD_TERMS, CoffeeEnv, object_frames, obs_part
 from gym_coffee.robot import GRIPPER_MAX_OPENING
 from gym_coffee.scene import (
+    BUTTON_MAX_TRAVEL,
     CUP_REGION_X,
     CUP_REGION_Y,
     MACHINE_REGION_X,
@@ -48,9 +49,7 @@ def drive(env, position, rotation, n_steps, opening=0.0):
             q, position, rotation, REST_POSTURE, max_step=MAX_JOINT_STEP
         )
         env.robot.command(q_target, opening)
-        env.scene.apply_spring()
-        env.sim.step(env.scene.enforce_stop)
-        env._n_steps += 1
+        env._simulate()
         info, _ = env._evaluate()
     return info
 
@@ -83,7 +82,7 @@ def test_observation_layout_and_frames(env):
     _, rot = frames["machine"]
     np.testing.assert_allclose(rot[:, 0], points["button_axis"], atol=1e-6)
     np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-6)
-    assert set(info) >= {"is_success", "cup_grasped", "cup_placed", "button_pressed", "stage"}
+    assert set(info) >= {"is_success", *gym_coffee.STAGES, "stage", "layout"}
     assert obs_part(obs, "gripper")[0] == pytest.approx(GRIPPER_MAX_OPENING, abs=1e-6)
     np.testing.assert_allclose(obs_part(obs, "ee_pos"), env.robot.ee_position(), atol=1e-5)
 
@@ -114,7 +113,7 @@ def test_reward_is_the_sum_of_its_terms(reward_type):
 
 
 def test_lifted_cup_is_grasped_and_not_placed():
-    env = gym.make("gym_coffee/CoffeeTask-v0")
+    env = gym.make(gym_coffee.ENV_ID)
     teacher = ScriptedTeacher(env, rng=0)
     obs, info = env.reset(seed=5)
     assert not info["cup_grasped"]
@@ -162,7 +161,7 @@ def test_cup_on_the_tray_counts_only_under_the_spout(env):
 
 
 def test_button_pressed_without_the_cup_is_not_success():
-    env = gym.make("gym_coffee/CoffeeTask-v0")
+    env = gym.make(gym_coffee.ENV_ID)
     teacher = ScriptedTeacher(env, rng=1)
     obs, _ = env.reset(seed=8)
     action = teacher.act(obs)  # plans for the cup where it stands now
@@ -214,3 +213,64 @@ def test_rgb_array_render():
     assert frame.std() > 10  # not a blank image
     env.close()
     env.close()  # idempotent
+
+
+def test_sideways_swipe_across_the_button_is_not_a_press(env):
+    """The fingertips swept across the button 4 mm past its face push it in by ~7 mm, but not
+    along its axis: not pressed."""
+    env.reset(seed=0)
+    points = env.task_points()
+    axis, button = points["button_axis"], points["button_pos"]
+    side = np.cross([0.0, 0.0, 1.0], axis)
+    rotation = _hand_rotation(axis, False)
+    start = button + 0.004 * axis - 0.04 * side - FINGERTIP_OFFSET * axis
+    drive(env, start - 0.06 * axis, rotation, 60)
+    drive(env, start, rotation, 40)
+    most = 0.0
+    for k in range(30):
+        info = drive(env, start + (k + 1) / 30 * 0.08 * side, rotation, 1)
+        most = max(most, env.scene.button_travel())
+    assert most > 0.005  # the button did go in past the threshold
+    assert not info["button_pressed"]
+    # The same button pressed along its axis counts.
+    info = press_button(env, depth=0.007)
+    assert info["button_pressed"]
+
+
+@pytest.mark.parametrize("depth", [0.007, 0.03])
+def test_button_stops_hard_at_8_mm(env, depth):
+    env.reset(seed=1)
+    points = env.task_points()
+    axis = points["button_axis"]
+    rotation = _hand_rotation(axis, False)
+    tip = points["button_pos"] - FINGERTIP_OFFSET * axis
+    drive(env, tip - 0.06 * axis, rotation, 60)
+    travels = []
+    for _ in range(30):  # a push far past the stop, at full speed
+        info = drive(env, tip + depth * axis, rotation, 1)
+        travels.append(env.scene.button_travel())
+    assert max(travels) <= BUTTON_MAX_TRAVEL + 1e-9
+    assert info["button_pressed"]
+    if depth > BUTTON_MAX_TRAVEL:
+        assert max(travels) > 0.0075  # it went to the stop
+
+
+def test_cup_still_moving_or_tilted_on_the_tray_is_not_placed(env):
+    env.reset(seed=7)
+    place = env.task_points()["place_pos"]
+    env.sim.set_base_pose("cup", place + np.array([0, 0, 0.001]), (0, 0, 0, 1))
+    _, _, _, _, info = hold(env, 10)
+    assert info["cup_placed"]
+    # Sliding at 5 cm/s: not at rest.
+    cup = env.sim.bodies["cup"]
+    env.sim.p.resetBaseVelocity(cup, [0.05, 0.0, 0.0], [0.0, 0.0, 0.0])
+    assert not env._evaluate()[0]["cup_placed"]
+    # Wobbling (angular velocity only, standing where it should).
+    env.sim.set_base_pose("cup", place + np.array([0, 0, 0.001]), (0, 0, 0, 1))
+    env.sim.p.resetBaseVelocity(cup, [0.0, 0.0, 0.0], [0.5, 0.0, 0.0])
+    assert not env._evaluate()[0]["cup_placed"]
+    # Tilted by 7 degrees, at rest.
+    half = np.deg2rad(7.0) / 2
+    tilted = (np.sin(half), 0.0, 0.0, np.cos(half))
+    env.sim.set_base_pose("cup", place + np.array([0, 0, 0.004]), tilted)
+    assert not env._evaluate()[0]["cup_placed"]

@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import gym_coffee  # noqa: F401  (registers the env)
+import gym_coffee
 from gym_coffee.env import obs_part
 from gym_coffee.teacher import ScriptedTeacher
 
@@ -28,7 +28,7 @@ def run_episode(env, teacher, seed):
 
 @pytest.fixture(scope="module")
 def env():
-    env = gym.make("gym_coffee/CoffeeTask-v0")
+    env = gym.make(gym_coffee.ENV_ID)
     yield env
     env.close()
 

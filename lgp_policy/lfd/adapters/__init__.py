@@ -78,13 +78,24 @@ class ObservationAdapter(Protocol):
         ...
 
 
+_LAST_ROTATION: list[Any] = [None, None, None]
+
+
 def rotation_from_angle(angle: NDArray[np.float64], dim: int) -> NDArray[np.float64]:
-    """Rotations ``(n, d, d)`` by ``angle (n,)`` about the z axis (``d = 3``) or in the plane."""
+    """Rotations ``(n, d, d)`` by ``angle (n,)`` about the z axis (``d = 3``) or in the plane.
+
+    The last result is reused when the angles repeat (a static object observed every step)."""
+    a = np.asarray(angle, dtype=float).reshape(-1)
+    last_a, last_dim, last_R = _LAST_ROTATION
+    if last_dim == dim and last_a is not None and np.array_equal(a, last_a):
+        return last_R
     from scipy.spatial.transform import Rotation
 
-    a = np.asarray(angle, dtype=float).reshape(-1)
     R3 = Rotation.from_euler("z", a[:, None]).as_matrix()
-    return R3 if dim == 3 else np.ascontiguousarray(R3[:, :2, :2])
+    R = R3 if dim == 3 else np.ascontiguousarray(R3[:, :2, :2])
+    R.setflags(write=False)
+    _LAST_ROTATION[:] = [a.copy(), dim, R]
+    return R
 
 
 FrameSpec = tuple[slice, "slice | str | None"]
@@ -147,9 +158,13 @@ class ArrayAdapter:
         for fname, (pos, rot) in dict(frames).items():
             d = len(range(*pos.indices(obs_dim)))
             if d != robot.dim:
-                raise ValueError(f"frame {fname!r}: position slice has {d} entries, need {robot.dim}")
+                raise ValueError(
+                    f"frame {fname!r}: position slice has {d} entries, need {robot.dim}"
+                )
             if rot is not None and len(range(*rot.indices(obs_dim))) not in (1, 4):
-                raise ValueError(f"frame {fname!r}: rotation slice must hold an angle or a quaternion")
+                raise ValueError(
+                    f"frame {fname!r}: rotation slice must hold an angle or a quaternion"
+                )
             self._frames[fname] = (pos, rot)
         self.frame_names = tuple(sorted(self._frames))
         self._events = dict(events or {})
@@ -184,8 +199,6 @@ class ArrayAdapter:
         )
 
     def __repr__(self) -> str:
-        return f"ArrayAdapter(name={self.name!r}, obs_dim={self.obs_dim}, frames={self.frame_names})"
-
-
-def _describe(adapter: Any) -> str:
-    return getattr(adapter, "name", type(adapter).__name__)
+        return (
+            f"ArrayAdapter(name={self.name!r}, obs_dim={self.obs_dim}, frames={self.frame_names})"
+        )

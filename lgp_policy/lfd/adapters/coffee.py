@@ -1,4 +1,5 @@
-"""The gym-coffee task as one adapter: the only module of :mod:`lgp_policy.lfd` importing ``gym_coffee``.
+"""The gym-coffee task as one adapter, the only module of :mod:`lgp_policy.lfd` that imports
+``gym_coffee``.
 
 * :class:`PandaModel`: the coffee env's Panda (``gym_coffee.kinematics.PandaKinematics``) as a
   batched :class:`~lgp_policy.lfd.robots.RobotModel` (7 joints, 3-D, the grasp point);
@@ -18,7 +19,7 @@ the policy filters the observed positions over time (``frame_noise``).
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -64,10 +65,10 @@ class PandaModel:
         self.base_position = self._one.base_position
         self.joint_lower = self._one.joint_lower
         self.joint_upper = self._one.joint_upper
-        roll = _kin._JOINT_ROLL  # noqa: SLF001 - the URDF chain's constants (one place)
-        self._xyz = _kin._JOINT_XYZ  # noqa: SLF001
+        roll = _kin._JOINT_ROLL
+        self._xyz = _kin._JOINT_XYZ
         self._rx = Rotation.from_euler("x", roll[:, None]).as_matrix()
-        self._hand = Rotation.from_euler("z", _kin._HAND_YAW).as_matrix()  # noqa: SLF001
+        self._hand = Rotation.from_euler("z", _kin._HAND_YAW).as_matrix()
 
     def _chain(self, q: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         n = q.shape[0]
@@ -80,7 +81,11 @@ class PandaModel:
             p = p + R @ self._xyz[i]
             Rz = np.zeros((n, 3, 3))
             Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = (
-                c[:, i], -s[:, i], s[:, i], c[:, i], 1.0,
+                c[:, i],
+                -s[:, i],
+                s[:, i],
+                c[:, i],
+                1.0,
             )
             R = (R @ self._rx[i]) @ Rz
             axes[:, i] = R[:, :, 2]
@@ -144,7 +149,11 @@ class CoffeeAdapter:
     gripper = GripperSpec(closed=0.0, open=GRIPPER_MAX_OPENING)
     #: Which frame should be tight when each stage is first reached (the paper's Fig. 4; the
     #: policy's constraint check).
-    expected_tight = {"cup_grasped": "cup", "cup_placed": "machine", "button_pressed": "machine"}
+    expected_tight: ClassVar[dict[str, str]] = {
+        "cup_grasped": "cup",
+        "cup_placed": "machine",
+        "button_pressed": "machine",
+    }
 
     def __init__(self, *, track_cup: bool = True) -> None:
         self.track_cup = bool(track_cup)
@@ -209,7 +218,10 @@ def to_trajectories(demos: Iterable[Any]) -> TrajectorySet:
                 actions=actions,
                 frames={
                     "cup": (d.object_pos["cup"], np.eye(3)),
-                    "machine": (d.object_pos["machine"], _machine_rotation(d.object_quat["machine"])),
+                    "machine": (
+                        d.object_pos["machine"],
+                        _machine_rotation(d.object_quat["machine"]),
+                    ),
                 },
                 events=events,
                 success=d.success,

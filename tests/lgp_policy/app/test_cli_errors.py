@@ -190,3 +190,53 @@ def test_record_refuses_before_making_an_env(monkeypatch, tmp_path, capsys):
     argv = ["record", "--out", str(tmp_path / "d.npz"), "--video", str(tmp_path / "v.gif")]
     assert main(argv) == 2
     assert "v.gif exists; pass --force" in _one_line(capsys.readouterr().err, "record")
+
+
+def test_a_real_sigint_ends_with_one_line_and_130(tmp_path):
+    """SIGINT to the process group (what Ctrl-C in a terminal sends) while a command works."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    script = tmp_path / "slow_evaluate.py"
+    script.write_text(
+        "import sys, time\n"
+        "from lgp_policy.app import commands, evaluation\n"
+        "from lgp_policy.app.cli import main\n"
+        "commands.load_policy = lambda path: object()\n"
+        "def slow(*a, **k):\n"
+        "    print('working', flush=True)\n"
+        "    time.sleep(60)\n"
+        "evaluation.evaluate_policy_stages = slow\n"
+        f"sys.exit(main(['evaluate', {str(tmp_path / 'p.npz')!r}, '--json', "
+        f"{str(tmp_path / 'r.json')!r}]))\n"
+    )
+    (tmp_path / "p.npz").write_bytes(b"stub")
+    root = Path(__file__).resolve().parents[3]
+    proc = subprocess.Popen(
+        [sys.executable, str(script)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        start_new_session=True,
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "working"
+        t0 = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130 and time.monotonic() - t0 < 10
+    ours = [line for line in err.splitlines() if line.startswith("gym-coffee")]
+    assert ours == [
+        "gym-coffee evaluate: interrupted; finished files are kept, partial ones removed"
+    ]
+    assert "Traceback" not in err
+    assert not (tmp_path / "r.json").exists()

@@ -57,6 +57,24 @@ class BatchOnlyPolicy(ScriptedPolicy):
         return a, state
 
 
+class MemoryPolicy(ScriptedPolicy):
+    """A policy with memory updated in place (like the GP policy's frame filter): its action
+    depends on the steps since ``episode_start``; the big array goes through Ray's object store
+    zero-copy (read-only)."""
+
+    def __init__(self):
+        self.memory = np.zeros(200_000)
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        if episode_start is not None and np.any(episode_start):
+            self.memory[:] = 0.0
+        self.memory[:2] += 1.0
+        a, _ = super().predict(observation, state, episode_start)
+        a = np.array(a)
+        a[..., 2] = 0.05 * np.sin(self.memory[0])
+        return a, state
+
+
 def test_run_episode_records_what_happened():
     env = gym.make(gym_coffee.ENV_ID, **SHORT)
     try:
@@ -99,6 +117,11 @@ def test_results_identical_however_the_episodes_are_split(tmp_path):
         other = evaluate_policy_stages(ScriptedPolicy(), n, seed=7, **kw, **split)
         assert other["episodes"] == serial["episodes"], split
         assert other["stages"] == serial["stages"]
+    # a policy with memory (reset by episode_start) gives its own episodes, in any split too
+    memory = evaluate_policy_stages(MemoryPolicy(), n, seed=7, **kw)
+    assert memory["episodes"] != serial["episodes"]
+    split = evaluate_policy_stages(MemoryPolicy(), n, seed=7, workers=2, chunk_size=3, **kw)
+    assert split["episodes"] == memory["episodes"]
     assert other["video"] == str(tmp_path / "first.gif")
     assert (tmp_path / "first.gif").stat().st_size > 0
     first = other["first_episode"]
@@ -154,3 +177,34 @@ def test_chunk_seeds_cover_every_seed_once():
 def test_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         evaluate_policy_stages(ScriptedPolicy(), progress=False, **kwargs)
+
+
+def _square(x):
+    return x * x
+
+
+def test_map_tasks_keeps_the_order():
+    from lgp_policy.app.backends import map_tasks
+
+    items = list(range(7))
+    assert map_tasks(_square, items, workers=2) == [x * x for x in items]
+    assert map_tasks(_square, items) == [x * x for x in items]
+    with pytest.raises(ValueError, match="backend"):
+        map_tasks(_square, items, backend="spark")
+
+
+def test_levels_and_perturbations_are_seeded():
+    kw = {
+        "env_id": "hard",  # a level name of gym_coffee.LEVELS
+        "env_kwargs": {"obs_noise": 0.01, "calibration_bias": 0.01, "max_episode_steps": 10},
+        "progress": False,
+    }
+    serial = evaluate_policy_stages(ScriptedPolicy(), 2, **kw)
+    split = evaluate_policy_stages(ScriptedPolicy(), 2, workers=2, **kw)
+    assert split["episodes"] == serial["episodes"]
+    env = EnvFactory(kw["env_id"], kw["env_kwargs"])()
+    try:  # the level and the keywords reach the env
+        assert env.spec.id == gym_coffee.LEVELS["hard"]
+        assert env.unwrapped.obs_noise == 0.01
+    finally:
+        env.close()

@@ -11,7 +11,7 @@ import pytest
 ray = pytest.importorskip("ray")
 
 import test_evaluation  # noqa: E402  (this folder is on sys.path: pytest's rootdir-less import)
-from test_evaluation import SHORT, ScriptedPolicy  # noqa: E402
+from test_evaluation import SHORT, MemoryPolicy, ScriptedPolicy  # noqa: E402
 
 from lgp_policy.app.evaluation import evaluate_policy_stages  # noqa: E402
 
@@ -39,3 +39,13 @@ def test_ray_backend_gives_the_local_results(local_ray):
     assert on_ray["backend"] == "ray"
     assert on_ray["episodes"] == local["episodes"]
     assert on_ray["stages"] == local["stages"]
+    # a policy with memory updated in place (read-only arrays straight from the object store)
+    local = evaluate_policy_stages(MemoryPolicy(), 3, **kw)
+    on_ray = evaluate_policy_stages(MemoryPolicy(), 3, backend="ray", **kw)
+    assert on_ray["episodes"] == local["episodes"]
+
+
+def test_map_tasks_on_ray(local_ray):
+    from lgp_policy.app.backends import map_tasks
+
+    assert map_tasks(test_evaluation._square, [-3, 2, -1], backend="ray") == [9, 4, 1]

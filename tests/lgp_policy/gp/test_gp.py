@@ -7,7 +7,9 @@ import pytest
 from scipy.optimize import approx_fprime
 
 from lgp_policy.gp.exact import GaussianProcess
+from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
+from lgp_policy.gp.local import LocalGP
 
 
 @pytest.fixture
@@ -186,3 +188,61 @@ def test_latent_at_training_shortcut_equals_prediction(data, collapse):
     ref_mean, ref_var = gp._predict_normalized(gp._data.X)
     np.testing.assert_allclose(mean, ref_mean, atol=1e-9)
     np.testing.assert_allclose(var, ref_var, atol=1e-9)
+
+
+def test_refuses_data_it_cannot_represent():
+    """Finite but huge values would overflow when squared: one clear error naming the argument."""
+    X = np.linspace(0.0, 1.0, 10)[:, None]
+    y = np.sin(X[:, 0])
+    for model in (GaussianProcess(), HeteroscedasticGP(), LocalGP()):
+        with pytest.raises(
+            ValueError, match=r"^y has values up to 8.41e\+299.*must stay below 1e\+100"
+        ):
+            model.fit(X, y * 1e300)
+        with pytest.raises(ValueError, match=r"^X has values up to"):
+            model.fit(X * 1e200, y)
+        with pytest.raises(ValueError, match=r"^y contains NaN"):
+            model.fit(X, np.where(X[:, 0] > 0.5, np.nan, y))
+        with pytest.raises(ValueError, match=r"^X contains NaN"):
+            model.fit(np.where(X > 0.5, np.inf, X), y)
+    gp = GaussianProcess().fit(X, y)
+    with pytest.raises(ValueError, match=r"^X contains NaN"):
+        gp.predict(np.array([[np.nan]]))
+
+
+def test_exact_gp_refuses_more_inputs_than_it_can_hold_and_points_to_local_gp(monkeypatch):
+    import lgp_policy.gp.exact as exact
+
+    monkeypatch.setattr(exact, "MAX_EXACT_INPUTS", 50)
+    X = np.linspace(0.0, 1.0, 51)[:, None]
+    with pytest.raises(ValueError, match=r"51 distinct inputs.*limited to 50.*LocalGP"):
+        GaussianProcess().fit(X, np.sin(X[:, 0]))
+    # replicates are free: 4 x 50 samples on 50 distinct inputs are accepted
+    X4 = np.tile(np.linspace(0.0, 1.0, 50), 4)[:, None]
+    GaussianProcess(optimizer=None).fit(X4, np.sin(X4[:, 0]))
+
+
+def test_estimators_follow_the_scikit_learn_contract():
+    from sklearn.base import clone
+
+    for est in (
+        GaussianProcess(SquaredExponential(2.0, [0.5, 1.0]) + WhiteNoise(0.1), n_restarts=2),
+        HeteroscedasticGP(noise_bounds=(1e-2, 5.0), max_em_iter=3),
+        LocalGP(max_points=50, combine="product"),
+    ):
+        twin = clone(est)
+        assert type(twin) is type(est)
+        p, q = est.get_params(deep=False), twin.get_params(deep=False)
+        assert p.keys() == q.keys()
+        for k in p:
+            if hasattr(p[k], "get_params"):
+                assert repr(p[k]) == repr(q[k]) and p[k] is not q[k]
+            else:
+                assert p[k] is q[k] or p[k] == q[k]
+    gp = GaussianProcess(SquaredExponential(1.0, 1.0) + WhiteNoise(0.1))
+    deep = gp.get_params(deep=True)
+    assert deep["kernel__k1__length_scale"] == 1.0
+    gp.set_params(kernel__k1__length_scale=0.3, n_restarts=1)
+    assert gp.kernel.k1.length_scale == 0.3 and gp.n_restarts == 1
+    with pytest.raises(ValueError, match="Invalid parameter 'nope'"):
+        gp.set_params(nope=1)

@@ -229,3 +229,29 @@ def test_hyperparameter_modes():
     np.testing.assert_allclose(thin.models_[0].kernel_.theta, shared[0], atol=0.25)
     for model in (full, thin):
         assert 0.9 <= coverage(model, X_test, y_test) <= 0.99
+
+
+def test_smooth_across_local_model_boundaries_with_zero_spread_at_the_start():
+    """Demonstrations that all start at one point (a start-point frame), modelled as the encoder
+    does: on a 20x finer grid neither the mean nor the std moves by more than twice the
+    demonstrations' largest step over that distance (the reproduction target of 2x). The old
+    noise model made the std piecewise constant per local model: jumps of 27-69x that step."""
+    rng = np.random.default_rng(0)
+    t = np.linspace(0.0, 1.0, 200)
+    s = 0.5 - 0.5 * np.cos(np.pi * t)
+    demos = [
+        s * (0.5 + rng.normal(0, 0.1)) + 0.05 * np.sin(3 * np.pi * t) * rng.normal() * s
+        for _ in range(4)
+    ]  # exactly 0 at t = 0 in every demonstration
+    X = np.tile(t, 4)[:, None]
+    min_ls = 1.5 / 199  # DemonstrationEncoder.make_kernel's bounds
+    kernel = SquaredExponential(
+        1.0, 0.1, variance_bounds=(1e-2, 1e2), length_scale_bounds=(min_ls, 0.5)
+    ) + WhiteNoise(0.1)
+    gp = LocalGP(kernel, threshold=0.5, random_state=0).fit(X, np.concatenate(demos))
+    assert len(gp.models_) >= 3
+    fine = np.linspace(0.0, 1.0, 20 * 199 + 1)[:, None]
+    mean, std = gp.predict(fine, return_std=True)
+    step = max(np.max(np.abs(np.diff(d))) for d in demos) / 20  # per fine-grid step
+    assert np.max(np.abs(np.diff(mean))) <= 2.0 * step
+    assert np.max(np.abs(np.diff(std))) <= 2.0 * step

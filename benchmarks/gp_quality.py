@@ -1,0 +1,315 @@
+"""GP quality on demonstration data: leave-one-demonstration-out against a ProMP and the exact GP.
+
+Part 1, multi-demonstration sets (each fold fits on all demonstrations but one and predicts the
+held-out one at its own time stamps):
+
+* ``coffee/<frame>``: the coffee task's scripted teacher, recorded once with
+  ``gym_coffee.collect_demonstrations`` (cached under ``/tmp``) and resampled exactly as
+  ``GPDemonstrationPolicy.fit`` does (``DemonstrationEncoder.data_``), in every frame the policy
+  encodes (joint, cup, machine); one model per output dimension.
+* ``shapes-<grid>``: synthetic 2-D shapes whose demonstrations share their start and end
+  points exactly (zero spread there), ``grid`` ``shared`` (one time grid, replicated inputs) or
+  ``own`` (each demonstration on its own time stamps, distinct inputs).
+
+Methods: ``local-<rule>`` (``LocalGP`` as the encoder builds it,
+``DemonstrationEncoder._make_model``, with each combination rule), ``exact`` (the homoscedastic
+``GaussianProcess`` with the same kernel) and ``promp``
+(``movement_primitives.promp.ProMP``, ``N_WEIGHTS`` Gaussian basis functions per dimension; its
+predictive variance is that of the learnt weight distribution, which models the variation
+between demonstrations).
+
+Metrics, per held-out demonstration and output dimension, in units of that dimension's std over
+the training demonstrations: RMSE of the mean; NLPD (Gaussian, nats per point); coverage of the
+95% interval; largest step of the predicted mean between consecutive time stamps divided by the
+largest step in the training demonstrations; CPU seconds of fit + predict; and ``bad``: the
+number of folds with a non-finite, zero or > 100 x std prediction.
+
+Part 2, generated heteroscedastic regression sets (Goldberg et al. 1997, Yuan & Wahba 2004,
+Williams 1996, and a homoscedastic control): NLPD of ``HeteroscedasticGP`` and of the
+homoscedastic ``GaussianProcess`` on a large test set; the gain is homoscedastic minus
+heteroscedastic (positive: the heteroscedastic GP is better).
+
+Usage::
+
+    python benchmarks/gp_quality.py --quick    # a few output dimensions, 1 seed (~1-2 min)
+    python benchmarks/gp_quality.py            # every dimension, 3 seeds
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lgp_policy.gp.exact import GaussianProcess
+from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
+from lgp_policy.gp.local import COMBINE_RULES
+from lgp_policy.lfd.encoding import DemonstrationEncoder, new_demonstration_scale
+
+N_WEIGHTS = 25
+CACHE = Path("/tmp/gym_coffee_gp_quality")
+N_DEMOS = 4
+
+
+# ----------------------------------------------------------------------------- data
+def coffee_sets(n_steps: int, max_dims: int | None) -> dict[str, np.ndarray]:
+    """``{"coffee/<frame>": (n_demos, n_steps, d)}`` from the teacher's demonstrations."""
+    import gymnasium as gym
+
+    import gym_coffee
+    from gym_coffee.demonstrations import DemonstrationSet, collect_demonstrations
+    from lgp_policy.lfd.policy import GPDemonstrationPolicy
+
+    CACHE.mkdir(exist_ok=True)
+    path = CACHE / f"teacher_{N_DEMOS}.npz"
+    if path.exists():
+        demos = DemonstrationSet.load(path)
+    else:
+        env = gym.make(gym_coffee.ENV_ID)
+        try:
+            demos = collect_demonstrations(env, N_DEMOS, seed=0)
+        finally:
+            env.close()
+        demos.save(path, overwrite=True)
+    policy = GPDemonstrationPolicy(model="empirical", n_steps=n_steps).fit(demos)
+    data = policy.encoder_.data_
+    return {f"coffee/{k}": v[:, :, :max_dims] for k, v in data.items()}
+
+
+def shapes(grid: str, n_demos: int = 5, n_steps: int = 150, seed: int = 0):
+    """2-D shapes from a common start to a common end (zero spread at both)."""
+    rng = np.random.default_rng(seed)
+    Ts, Ys = [], []
+    for _ in range(n_demos):
+        if grid == "shared":
+            t = np.linspace(0.0, 1.0, n_steps)
+        else:
+            t = np.sort(np.r_[0.0, 1.0, rng.uniform(0.0, 1.0, n_steps - 2)])
+        bend = np.sin(np.pi * t)  # 0 at both ends
+        a, b, c = rng.normal(0.0, [0.25, 0.25, 0.15])
+        x = t + a * bend + c * np.sin(3 * np.pi * t) * bend
+        y = np.sin(2 * np.pi * t) * 0.5 + b * bend**2
+        Ts.append(t)
+        Ys.append(np.column_stack([x, y]))
+    return np.stack(Ts), np.stack(Ys)
+
+
+# -------------------------------------------------------------------------- methods
+def fit_predict_gp(model: Any, t_tr, y_tr, t_te):
+    X = t_tr.reshape(-1, 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model.fit(X, y_tr.reshape(-1))
+    return model.predict(t_te[:, None], return_std=True)
+
+
+def make_methods(
+    n_steps: int, rules: tuple[str, ...]
+) -> dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], Any]]:
+    """The compared methods. GP stds are scaled by ``new_demonstration_scale`` as the encoder
+    does (``calibrate=True``); ``<method>-raw`` rows show the same fits without it."""
+
+    def gp(model: str, **kw: Any):
+        enc = DemonstrationEncoder(n_steps=n_steps, model=model, **kw)
+        memo: dict[int, Any] = {}
+
+        def run(t_tr, y_tr, t_te, raw: bool = False):
+            key = hash((t_tr.tobytes(), y_tr.tobytes(), t_te.tobytes()))
+            if key not in memo:
+                memo[key] = fit_predict_gp(enc._make_model(), t_tr, y_tr, t_te)
+            mean, std = memo[key]
+            return mean, std * (1.0 if raw else new_demonstration_scale(t_tr.shape[0]))
+
+        return run
+
+    def promp(t_tr, y_tr, t_te):
+        from movement_primitives.promp import ProMP
+
+        p = ProMP(n_dims=1, n_weights_per_dim=N_WEIGHTS)
+        p.imitate(t_tr, y_tr[:, :, None])
+        mean = p.mean_trajectory(t_te)[:, 0]
+        var = p.var_trajectory(t_te)[:, 0]
+        return mean, np.sqrt(np.maximum(var, 0.0))
+
+    methods: dict[str, Callable[..., Any]] = {}
+    for rule in rules:
+        f = gp("local", combine=rule)
+        methods[f"local-{rule}"] = f
+        methods[f"local-{rule}-raw"] = lambda a, b, c, f=f: f(a, b, c, raw=True)
+    methods["exact"] = gp("exact")
+    methods["promp"] = promp
+    return methods
+
+
+def loo(Ts: np.ndarray, Ys: np.ndarray, method) -> dict[str, float]:
+    """Leave-one-demonstration-out over every output dimension; averaged metrics."""
+    rows = []
+    bad = 0
+    cpu = 0.0
+    for k in range(Ts.shape[0]):
+        keep = np.arange(Ts.shape[0]) != k
+        fold_bad = False
+        for j in range(Ys.shape[2]):
+            y_tr, t_tr = Ys[keep, :, j], Ts[keep]
+            y_te, t_te = Ys[k, :, j], Ts[k]
+            scale = float(np.std(y_tr))
+            scale = scale if scale > 0 else 1.0
+            c0 = time.process_time()
+            mean, std = method(t_tr, y_tr, t_te)
+            cpu += time.process_time() - c0
+            mean, std = np.asarray(mean, float), np.asarray(std, float)
+            if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(std))) or (
+                np.any(std <= 0) or np.any(std > 100 * scale)
+            ):
+                fold_bad = True
+                std = np.where(np.isfinite(std) & (std > 0), std, np.nan)
+            z = (y_te - mean) / scale
+            s = std / scale
+            nlpd = 0.5 * np.log(2 * np.pi * s**2) + 0.5 * (z / s) ** 2
+            demo_step = max(float(np.max(np.abs(np.diff(y)))) for y in y_tr)
+            rows.append(
+                (
+                    float(np.sqrt(np.mean(z**2))),
+                    float(np.nanmean(nlpd)),
+                    float(np.nanmean(np.abs(z) <= 1.96 * s)),
+                    float(np.max(np.abs(np.diff(mean)))) / max(demo_step, 1e-12),
+                )
+            )
+        bad += fold_bad
+    r = np.array(rows)
+    return {
+        "rmse": float(np.mean(r[:, 0])),
+        "nlpd": float(np.mean(r[:, 1])),
+        "cov": float(np.mean(r[:, 2])),
+        "step": float(np.max(r[:, 3])),
+        "cpu": cpu,
+        "bad": bad,
+        "folds": Ts.shape[0],
+    }
+
+
+# ---------------------------------------------------------------- heteroscedastic sets
+def hetero_sets():
+    """(name, x range, f, noise sd) of the classic generated heteroscedastic sets."""
+    return [
+        ("goldberg", (0.0, 1.0), lambda x: 2 * np.sin(2 * np.pi * x), lambda x: 0.5 + x),
+        (
+            "yuan",
+            (0.0, 1.0),
+            lambda x: 2 * (np.exp(-30 * (x - 0.25) ** 2) + np.sin(np.pi * x**2)) - 2,
+            lambda x: np.exp(np.sin(2 * np.pi * x)),
+        ),
+        (
+            "williams",
+            (0.0, np.pi),
+            lambda x: np.sin(2.5 * x) * np.sin(1.5 * x),
+            lambda x: 0.01 + 0.25 * (1 - np.sin(2.5 * x)) ** 2,
+        ),
+        ("homoscedastic", (0.0, 1.0), lambda x: 2 * np.sin(2 * np.pi * x), lambda x: 0.5 + 0 * x),
+    ]
+
+
+def hetero_table(seeds: list[int], n_train: int = 200, n_test: int = 2000) -> list[str]:
+    lines = [
+        "| set | NLPD homoscedastic | NLPD heteroscedastic | gain (nats) | oracle gain | "
+        "CPU s het / hom |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, (a, b), f, sd in hetero_sets():
+        nh: list[float] = []
+        ne: list[float] = []
+        oracle: list[float] = []
+        th, te = 0.0, 0.0
+        for seed in seeds:
+            rng = np.random.default_rng(seed)
+            x = rng.uniform(a, b, n_train)
+            y = f(x) + sd(x) * rng.standard_normal(n_train)
+            xt = rng.uniform(a, b, n_test)
+            yt = f(xt) + sd(xt) * rng.standard_normal(n_test)
+            # the largest gain possible: true f with the true noise vs the best constant noise
+            r2 = (yt - f(xt)) ** 2
+            het_o = np.mean(0.5 * np.log(2 * np.pi * sd(xt) ** 2) + 0.5 * r2 / sd(xt) ** 2)
+            oracle.append(float(0.5 * np.log(2 * np.pi * np.mean(r2)) + 0.5 - het_o))
+            for model, acc in ((GaussianProcess(), nh), (HeteroscedasticGP(random_state=0), ne)):
+                c0 = time.process_time()
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    model.fit(x[:, None], y)
+                m, s = model.predict(xt[:, None], return_std=True)
+                dt = time.process_time() - c0
+                if isinstance(model, HeteroscedasticGP):
+                    te += dt
+                else:
+                    th += dt
+                acc.append(
+                    float(np.mean(0.5 * np.log(2 * np.pi * s**2) + 0.5 * ((yt - m) / s) ** 2))
+                )
+        gain = float(np.mean(nh) - np.mean(ne))
+        lines.append(
+            f"| {name} | {np.mean(nh):.3f} | {np.mean(ne):.3f} | {gain:+.3f} | "
+            f"{np.mean(oracle):+.3f} | {te / max(th, 1e-9):.1f} |"
+        )
+    return lines
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="2 dims per frame, 1 seed")
+    parser.add_argument("--n-steps", type=int, default=100, help="resampled points per demo")
+    parser.add_argument(
+        "--rules",
+        nargs="+",
+        default=list(COMBINE_RULES),
+        choices=COMBINE_RULES,
+        help="LocalGP combination rules to compare",
+    )
+    args = parser.parse_args(argv)
+    max_dims = 2 if args.quick else None
+    methods = make_methods(args.n_steps, tuple(args.rules))
+    sets: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for name, Y in coffee_sets(args.n_steps, max_dims).items():
+        T = np.tile(np.linspace(0.0, 1.0, Y.shape[1]), (Y.shape[0], 1))
+        sets[name] = (T, Y)
+    for grid in ("shared", "own"):
+        sets[f"shapes-{grid}"] = shapes(grid, n_steps=args.n_steps)
+    print(f"## Leave-one-demonstration-out (n_steps={args.n_steps}, ProMP {N_WEIGHTS} weights)\n")
+    print("| set | method | RMSE | NLPD | 95% cov. | max step ratio | CPU s | bad folds |")
+    print("|---|---|---|---|---|---|---|---|")
+    summary: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
+    for name, (T, Y) in sets.items():
+        for m, fn in methods.items():
+            r = loo(T, Y, fn)
+            summary[m].append(r)
+            print(
+                f"| {name} (d={Y.shape[2]}) | {m} | {r['rmse']:.3f} | {r['nlpd']:.2f} | "
+                f"{r['cov']:.3f} | {r['step']:.2f} | {r['cpu']:.2f} | {r['bad']}/{r['folds']} |",
+                flush=True,
+            )
+    print(
+        "\n| method | mean RMSE | mean NLPD | mean cov. | worst step | bad folds | "
+        "RMSE / ProMP | NLPD - ProMP |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    ref = summary["promp"]
+    for m, rs in summary.items():
+        rm = np.mean([r["rmse"] for r in rs])
+        nl = np.mean([r["nlpd"] for r in rs])
+        ratio = np.mean([r["rmse"] / p["rmse"] for r, p in zip(rs, ref, strict=True)])
+        dn = np.mean([r["nlpd"] - p["nlpd"] for r, p in zip(rs, ref, strict=True)])
+        print(
+            f"| {m} | {rm:.3f} | {nl:.2f} | {np.mean([r['cov'] for r in rs]):.3f} | "
+            f"{max(r['step'] for r in rs):.2f} | {sum(r['bad'] for r in rs)} | "
+            f"{ratio:.2f} | {dn:+.2f} |"
+        )
+    print("\n## Generated heteroscedastic sets (200 train, 2000 test points)\n")
+    for line in hetero_table([0] if args.quick else [0, 1, 2]):
+        print(line)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,145 @@
+"""Degenerate demonstration data: the noise model stays well posed (issue: zero spread).
+
+Sets of demonstrations that coincide exactly somewhere (start, end, mid-way, over an interval),
+constant outputs, replicated / near-replicated / distinct time grids, 2-D and 3-D outputs and
+outputs of very different scale. Each prediction must be finite, its std within
+``[NOISE_BOUNDS[0], 100] x std(y)``, and the mean must stay with the data.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
+from lgp_policy.gp.local import LocalGP
+
+N_DEMOS, N_STEPS = 4, 40
+FLOOR = 1e-3  # NOISE_BOUNDS[0]: the noise std floor relative to std(y)
+
+
+def demos(grid: str, pinch: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``N_DEMOS`` noisy-shaped trajectories on [0, 1] that coincide exactly where ``pinch`` says.
+
+    grid: ``"replicated"`` (one shared time grid), ``"near"`` (the shared grid + 1e-9 jitter) or
+    ``"distinct"`` (each demonstration on its own time stamps, ends included).
+    pinch: ``"start"``, ``"end"``, ``"both"``, ``"mid"`` (t = 0.5) or ``"interval"`` (zero spread
+    for t in [0.3, 0.6]).
+    """
+    rng = np.random.default_rng(seed)
+    X, y = [], []
+    for _ in range(N_DEMOS):
+        if grid == "distinct":
+            t = np.sort(np.r_[0.0, 0.5, 1.0, rng.uniform(0.0, 1.0, N_STEPS - 3)])
+        else:
+            t = np.linspace(0.0, 1.0, N_STEPS)
+            if grid == "near":
+                t = np.clip(t + rng.uniform(-1e-9, 1e-9, t.shape), 0.0, 1.0)
+        a, b = rng.normal(0.0, 0.4, 2)
+        bump = {
+            "start": t,
+            "end": 1.0 - t,
+            "both": np.sin(np.pi * t),
+            "mid": np.abs(np.sin(2.0 * np.pi * t)),
+            "interval": np.clip(np.abs(t - 0.45) - 0.15, 0.0, None),
+        }[pinch]
+        shape = np.sin(2.0 * np.pi * t) + 0.5 * t
+        # the pinched values are exactly equal across demonstrations (no rounding noise)
+        y.append(np.where(bump == 0.0, shape, shape + bump * (a + b * np.cos(3.0 * t))))
+        X.append(t)
+    return np.concatenate(X)[:, None], np.concatenate(y)
+
+
+def check_prediction(mean, std, y, t_test) -> None:
+    """Finite, std within [FLOOR, 100] x std(y), and inside [0, 1] the mean stays with the data."""
+    scale = np.std(y)
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(std))
+    assert np.all(std >= 0.99 * FLOOR * scale), std.min() / scale
+    assert np.all(std <= 100.0 * scale), std.max() / scale
+    lo, hi = y.min() - 0.5 * scale, y.max() + 0.5 * scale
+    inside = (t_test[:, 0] >= 0.0) & (t_test[:, 0] <= 1.0)
+    assert np.all((mean[inside] > lo) & (mean[inside] < hi)), "the mean left the data"
+
+
+def spread_at(X, y, t0: float) -> float:
+    near = np.abs(X[:, 0] - t0) < 1e-6
+    return float(np.ptp(y[near])) if np.any(near) else np.nan
+
+
+MODELS = {
+    "heteroscedastic": lambda: HeteroscedasticGP(random_state=0),
+    "local": lambda: LocalGP(max_points=25, random_state=0),
+}
+
+
+@pytest.mark.parametrize("model", sorted(MODELS))
+@pytest.mark.parametrize("grid", ["replicated", "near", "distinct"])
+@pytest.mark.parametrize("pinch", ["start", "end", "both", "mid", "interval"])
+def test_coinciding_demonstrations_give_bounded_finite_predictions(model, grid, pinch):
+    X, y = demos(grid, pinch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = MODELS[model]().fit(X, y)
+    t = np.linspace(-0.2, 1.2, 141)[:, None]  # includes extrapolation on both sides
+    mean, std = gp.predict(t, return_std=True)
+    check_prediction(mean, std, y, t)
+    assert np.all(np.isfinite(gp.noise_variance(t)))
+    # where the demonstrations coincide the model is far more certain than where they spread
+    inside = np.linspace(0.0, 1.0, 101)[:, None]
+    _, sd_in = gp.predict(inside, return_std=True)
+    pinch_t = {"start": 0.0, "end": 1.0, "both": 0.0, "mid": 0.5, "interval": 0.45}[pinch]
+    at = int(np.argmin(np.abs(inside[:, 0] - pinch_t)))
+    assert sd_in[at] < 0.3 * np.max(sd_in)
+
+
+@pytest.mark.parametrize("model", sorted(MODELS))
+def test_constant_output_is_reproduced_with_a_small_finite_std(model):
+    X = np.tile(np.linspace(0.0, 1.0, 30), 3)[:, None]
+    y = np.full(X.shape[0], 2.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = MODELS[model]().fit(X, y)
+    mean, std = gp.predict(np.linspace(-0.5, 1.5, 21)[:, None], return_std=True)
+    np.testing.assert_allclose(mean, 2.5, atol=1e-6)
+    assert np.all(np.isfinite(std)) and np.all(std > 0) and np.all(std < 0.1 * 2.5)
+
+
+@pytest.mark.parametrize("model", sorted(MODELS))
+@pytest.mark.parametrize("n_outputs", [2, 3])
+def test_multi_output_of_wildly_different_scales(model, n_outputs):
+    """Columns of scale 1e6, 1e-6 (and 1): each is modelled on its own scale."""
+    X, y1 = demos("distinct", "both", seed=1)
+    scales = [1e6, 1e-6, 1.0][:n_outputs]
+    Y = np.column_stack([s * np.roll(y1, k) for k, s in enumerate(scales)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = MODELS[model]().fit(X, Y)
+    t = np.linspace(0.0, 1.0, 51)[:, None]
+    mean, std = gp.predict(t, return_std=True)
+    assert mean.shape == std.shape == (51, n_outputs)
+    for j in range(n_outputs):
+        check_prediction(mean[:, j], std[:, j], Y[:, j], t)
+    # the tiny column is not swamped by the huge one: relative predictions agree
+    _, std1 = MODELS[model]().fit(X, Y[:, 1]).predict(t, return_std=True)
+    np.testing.assert_allclose(std[:, 1], std1, rtol=1e-6)
+
+
+def test_em_records_its_objective_and_warns_when_stopped_early():
+    X, y = demos("distinct", "both", seed=2)
+    with pytest.warns(UserWarning, match="stopped without converging"):
+        gp = HeteroscedasticGP(max_em_iter=1, tol=1e-12, random_state=0).fit(X, y)
+    assert gp.converged_ is False and gp.em_status_ == "max_em_iter reached"
+    assert len(gp.em_objective_) == 2
+    assert gp.em_objective_[gp.em_best_iter_] == max(gp.em_objective_)
+    gp = HeteroscedasticGP(random_state=0).fit(X, y)
+    # the kept model is never worse than the homoscedastic GP it starts from (iteration 0)
+    assert gp.em_objective_[gp.em_best_iter_] >= gp.em_objective_[0]
+
+
+def test_noise_bounds_are_validated():
+    X, y = demos("replicated", "both")
+    for bad in [(0.0, 1.0), (1.0, 0.5), (np.nan, 1.0), "ab"]:
+        with pytest.raises(ValueError, match="noise_bounds"):
+            HeteroscedasticGP(noise_bounds=bad).fit(X, y)
