@@ -29,10 +29,10 @@ def make_pendulum() -> gym.Env:
 
 def pendulum_curve(policy):
     """A learning-curve point through the app's episode loop (Pendulum has no stage flags)."""
-    from lgp_policy.app.evaluation import _run_episode
+    from lgp_policy.rollout import run_episode
 
     env = make_pendulum()
-    lengths = [_run_episode(policy, env, seed)["length"] for seed in (20_000, 20_001)]
+    lengths = [run_episode(policy, env, seed).length for seed in (20_000, 20_001)]
     env.close()
     return {"episodes": 2, "rates": {}, "mean_length": float(np.mean(lengths))}
 
