@@ -307,8 +307,10 @@ def import_robomimic(
         return DemonstrationSet.from_arrays(arrays)
     except (DemonstrationFormatError, FileFormatError) as exc:
         raise DemonstrationFormatError(f"{path}: {exc}") from None
-    except OSError as exc:  # h5py's "unable to open / truncated file"
-        raise DemonstrationFormatError(f"{path} is not a readable HDF5 file: {exc}") from None
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:  # h5py on damage
+        raise DemonstrationFormatError(
+            f"{path} is not a readable HDF5 file (truncated or corrupt?): {exc}"
+        ) from None
 
 
 class _H5Reader:
