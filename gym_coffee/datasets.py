@@ -219,9 +219,11 @@ def export_robomimic(
             for i, demo in enumerate(demos):
                 total += _write_demo(data.create_group(f"demo_{i}"), demo, keys)
             data.attrs["total"] = total
-            data.attrs["env_args"] = json.dumps(env_args, sort_keys=True)
-            data.attrs["gym_coffee_metadata"] = json.dumps(meta, sort_keys=True)
-            data.attrs["gym_coffee_obs_keys"] = json.dumps(keys)
+            # Fixed-length byte strings: their size is in the attribute's type, so a reader can
+            # check it before reading (a variable-length string's is not).
+            data.attrs["env_args"] = np.bytes_(json.dumps(env_args, sort_keys=True))
+            data.attrs["gym_coffee_metadata"] = np.bytes_(json.dumps(meta, sort_keys=True))
+            data.attrs["gym_coffee_obs_keys"] = np.bytes_(json.dumps(keys))
             if valid_fraction > 0 and len(demos) >= 2:
                 names = np.array([f"demo_{i}" for i in range(len(demos))])
                 order = np.random.default_rng(split_seed).permutation(len(demos))
@@ -305,8 +307,10 @@ def import_robomimic(
         return DemonstrationSet.from_arrays(arrays)
     except (DemonstrationFormatError, FileFormatError) as exc:
         raise DemonstrationFormatError(f"{path}: {exc}") from None
-    except OSError as exc:  # h5py's "unable to open / truncated file"
-        raise DemonstrationFormatError(f"{path} is not a readable HDF5 file: {exc}") from None
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:  # h5py on damage
+        raise DemonstrationFormatError(
+            f"{path} is not a readable HDF5 file (truncated or corrupt?): {exc}"
+        ) from None
 
 
 class _H5Reader:
@@ -358,15 +362,20 @@ class _H5Reader:
         return np.asarray(ds[()])
 
     def text_attr(self, node: Any, name: str) -> str:
-        value = node.attrs.get(name)
-        if isinstance(value, bytes):
-            value = value.decode("utf-8", errors="replace")
-        if not isinstance(value, str):
+        """A fixed-length byte-string attribute, its size checked before it is read."""
+        if name not in node.attrs:
             raise DemonstrationFormatError(f"missing text attribute {node.name}.attrs[{name!r}]")
-        if len(value) > self.budget:
+        attr = node.attrs.get_id(name)
+        if attr.dtype.kind != "S" or attr.shape not in ((), (1,)):
+            raise DemonstrationFormatError(
+                f"{node.name}.attrs[{name!r}] has type {attr.dtype} {attr.shape}; expected one "
+                "fixed-length byte string"
+            )
+        if attr.dtype.itemsize > self.budget:
             raise DemonstrationFormatError(f"{node.name}.attrs[{name!r}] is too long")
-        self.budget -= len(value)
-        return value
+        self.budget -= attr.dtype.itemsize
+        value = np.asarray(node.attrs[name]).reshape(-1)[0]
+        return bytes(value).decode("utf-8", errors="replace")
 
 
 def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
