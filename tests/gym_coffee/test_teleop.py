@@ -141,12 +141,6 @@ def test_taught_episode_exports_exactly(taught, tmp_path, monkeypatch):
     np.testing.assert_array_equal(episode.infos["stages"]["cup_placed"], taught[0].stages[:, 1])
 
 
-@pytest.mark.xfail(
-    raises=IndexError,
-    strict=False,
-    reason="lgp_policy.lfd reads the gripper command as actions[:, 7] (joint mode only); "
-    "requested: actions[:, -1] (the last column in every mode)",
-)
 def test_taught_episode_is_accepted_by_fit(taught):
     """The learner takes hand-taught (end-effector) demonstrations like the teacher's."""
     from lgp_policy.lfd.policy import GPDemonstrationPolicy

@@ -206,7 +206,7 @@ def to_trajectories(demos: Iterable[Any]) -> TrajectorySet:
     items = list(demos)
     out = []
     for d in items:
-        actions = np.asarray(d.actions, dtype=float)
+        actions = np.asarray(d.actions, dtype=float)  # the gripper is the last column in every mode
         stages = np.asarray(d.stages, dtype=bool)
         events = {name: stages[:, j] for j, name in enumerate(gym_coffee.STAGES[: stages.shape[1]])}
         events["cup_held"] = cup_held(np.asarray(d.observations, dtype=float))
@@ -214,7 +214,9 @@ def to_trajectories(demos: Iterable[Any]) -> TrajectorySet:
             Trajectory(
                 time=d.time,
                 state=d.joint_pos,
-                gripper=(actions[:, 7] + 1.0) / 2.0 * GRIPPER_MAX_OPENING,
+                gripper=(actions[:, -1] + 1.0)
+                / 2.0
+                * GRIPPER_MAX_OPENING,
                 actions=actions,
                 frames={
                     "cup": (d.object_pos["cup"], np.eye(3)),
