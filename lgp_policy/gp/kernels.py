@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from lgp_policy.gp._base import ParamsMixin
 from lgp_policy.gp._validation import check_positive
 
-__all__ = ["Kernel", "SquaredExponential", "Sum", "WhiteNoise"]
+__all__ = ["Exponential", "Kernel", "SquaredExponential", "Sum", "WhiteNoise"]
 
 Bounds = tuple[float, float]
 
@@ -118,18 +118,9 @@ class Kernel(ParamsMixin, ABC):
         return f"{type(self).__name__}({args})"
 
 
-class SquaredExponential(Kernel):
-    """Squared-exponential kernel, Eq. (3): ``variance * exp(-|x_p - x_q|^2 / (2 l^2))``.
-
-    Args:
-        variance: signal variance sigma_f^2 (> 0).
-        length_scale: characteristic length scale l (> 0); a float for an isotropic kernel or an
-            array with one entry per input feature (automatic relevance determination).
-        variance_bounds: ``(low, high)`` for ``variance`` during optimisation.
-        length_scale_bounds: ``(low, high)`` for every length scale.
-
-    ``theta = log([variance, *length_scale])``.
-    """
+class _Stationary(Kernel):
+    """Shared part of the stationary kernels ``variance * g(|x_p - x_q| / l)``: parameters,
+    ``theta``, bounds, scaled distances and the diagonal (arguments: see SquaredExponential)."""
 
     def __init__(
         self,
@@ -188,10 +179,9 @@ class SquaredExponential(Kernel):
             )
         return X / ls
 
-    def __call__(self, X, Y=None, eval_gradient=False):
+    def _sqdist(self, X, Y):
+        """Scaled inputs of ``X`` and squared scaled distances between ``X`` and ``Y``."""
         X = _as_2d(X, "X")
-        if eval_gradient and Y is not None:
-            raise ValueError("eval_gradient is only supported when Y is None")
         Xs = self._scaled(X)
         Ys = Xs if Y is None else self._scaled(_as_2d(Y, "Y"))
         if Xs.shape[1] == 1:  # 1-D inputs (time): a broadcast difference is exact and fast
@@ -199,6 +189,32 @@ class SquaredExponential(Kernel):
         else:
             d2 = np.sum(Xs**2, axis=1)[:, None] + np.sum(Ys**2, axis=1)[None, :] - 2.0 * Xs @ Ys.T
             np.maximum(d2, 0.0, out=d2)
+            if Y is None:
+                np.fill_diagonal(d2, 0.0)  # exact zeros (the expansion leaves rounding errors)
+        return Xs, d2
+
+    def diag(self, X):
+        X = _as_2d(X, "X")
+        return np.full(X.shape[0], self.variance)
+
+
+class SquaredExponential(_Stationary):
+    """Squared-exponential kernel, Eq. (3): ``variance * exp(-|x_p - x_q|^2 / (2 l^2))``.
+
+    Args:
+        variance: signal variance sigma_f^2 (> 0).
+        length_scale: characteristic length scale l (> 0); a float for an isotropic kernel or an
+            array with one entry per input feature (automatic relevance determination).
+        variance_bounds: ``(low, high)`` for ``variance`` during optimisation.
+        length_scale_bounds: ``(low, high)`` for every length scale.
+
+    ``theta = log([variance, *length_scale])``.
+    """
+
+    def __call__(self, X, Y=None, eval_gradient=False):
+        if eval_gradient and Y is not None:
+            raise ValueError("eval_gradient is only supported when Y is None")
+        Xs, d2 = self._sqdist(X, Y)
         K = self.variance * np.exp(-0.5 * d2)  # Eq. (3)
         if not eval_gradient:
             return K
@@ -209,10 +225,6 @@ class SquaredExponential(Kernel):
         else:
             grad = np.stack([K, K * d2], axis=2)
         return K, grad
-
-    def diag(self, X):
-        X = _as_2d(X, "X")
-        return np.full(X.shape[0], self.variance)
 
     @staticmethod
     def from_sqdist(theta: NDArray[np.float64], sqdist: NDArray[np.float64], eval_gradient: bool):
@@ -232,6 +244,36 @@ class SquaredExponential(Kernel):
         K *= np.exp(theta[0])  # Eq. (3)
         d2 *= K
         return K, [K, d2]
+
+
+class Exponential(_Stationary):
+    """Exponential (Matern-1/2, Ornstein-Uhlenbeck) kernel: ``variance exp(-|x_p - x_q| / l)``.
+
+    In one dimension it is a first-order Markov process: the posterior mean at ``x`` is a
+    *non-negatively* weighted combination of the observations and the prior mean (the equivalent
+    kernel of a scalar AR(1) smoother is positive), so it cannot overshoot a step in the data
+    the way the squared exponential's ringing interpolant does. This is why the z-process of
+    :mod:`lgp_policy.gp.heteroscedastic` uses it.
+
+    Arguments and ``theta`` as for :class:`SquaredExponential`.
+    """
+
+    def __call__(self, X, Y=None, eval_gradient=False):
+        if eval_gradient and Y is not None:
+            raise ValueError("eval_gradient is only supported when Y is None")
+        Xs, d2 = self._sqdist(X, Y)
+        d = np.sqrt(d2)
+        K = self.variance * np.exp(-d)
+        if not eval_gradient:
+            return K
+        if self.anisotropic:
+            # d/d log l_k of -d = (x_k - y_k)^2 / (l_k^2 d); 0 on the diagonal (d = 0)
+            per_dim = (Xs[:, None, :] - Xs[None, :, :]) ** 2
+            inv_d = np.divide(1.0, d, out=np.zeros_like(d), where=d > 0)
+            grad = np.concatenate([K[:, :, None], (K * inv_d)[:, :, None] * per_dim], axis=2)
+        else:
+            grad = np.stack([K, K * d], axis=2)
+        return K, grad
 
 
 class WhiteNoise(Kernel):

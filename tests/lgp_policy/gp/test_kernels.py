@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from lgp_policy.gp.kernels import SquaredExponential, Sum, WhiteNoise
+from lgp_policy.gp.kernels import Exponential, SquaredExponential, Sum, WhiteNoise
 
 
 @pytest.fixture
@@ -19,6 +19,8 @@ KERNELS = [
     SquaredExponential(0.8, [0.5, 2.0]),
     WhiteNoise(0.3),
     SquaredExponential(1.2, 0.9) + WhiteNoise(0.05),
+    Exponential(1.7, 0.6),
+    Exponential(0.8, [0.5, 2.0]),
 ]
 
 
@@ -28,6 +30,16 @@ def test_squared_exponential_value(X):
     np.testing.assert_allclose(k(X), 2.0 * np.exp(-d2 / (2 * 0.7**2)), rtol=1e-12)  # Eq. (3)
     ard = SquaredExponential(2.0, [0.7, 0.7])
     np.testing.assert_allclose(ard(X), k(X), rtol=1e-12)
+
+
+def test_exponential_equals_scikit_learn_matern_half(X):
+    from sklearn.gaussian_process.kernels import Matern
+
+    ours = Exponential(2.0, [0.7, 1.3])
+    ref = 2.0 * Matern(length_scale=[0.7, 1.3], nu=0.5)
+    np.testing.assert_allclose(ours(X), ref(X), rtol=1e-12)
+    np.testing.assert_allclose(ours(X, X[:3]), ref(X, X[:3]), rtol=1e-12)
+    assert not isinstance(ours, SquaredExponential)  # LocalGP's assignment tests for the SE
 
 
 def test_eq10_white_noise_only_on_the_training_set(X):
