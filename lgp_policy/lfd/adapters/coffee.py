@@ -214,9 +214,7 @@ def to_trajectories(demos: Iterable[Any]) -> TrajectorySet:
             Trajectory(
                 time=d.time,
                 state=d.joint_pos,
-                gripper=(actions[:, -1] + 1.0)
-                / 2.0
-                * GRIPPER_MAX_OPENING,
+                gripper=(actions[:, -1] + 1.0) / 2.0 * GRIPPER_MAX_OPENING,
                 actions=actions,
                 frames={
                     "cup": (d.object_pos["cup"], np.eye(3)),
