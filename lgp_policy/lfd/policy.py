@@ -628,6 +628,8 @@ class GPDemonstrationPolicy:
         """
         t_obs = observed.time
         n = len(state)
+        if n == 1:
+            return self._advance_one(state, observed, hand)
         fresh = state.fresh.copy()
         if t_obs is not None:
             fresh |= t_obs < state.last_time - 1e-9
@@ -679,6 +681,118 @@ class GPDemonstrationPolicy:
         state.last_time = now
         state.fresh = np.zeros(n, dtype=bool)
         return state.clock, np.where(hold, aim, np.nan)
+
+    def _advance_one(
+        self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`_advance` for one environment on plain floats (the same operations in the same
+        order, so the same results; a batch of one is the common control loop)."""
+        t_obs = observed.time
+        last = float(state.last_time[0])
+        fresh = bool(state.fresh[0])
+        if t_obs is not None:
+            t = float(t_obs[0])
+            fresh = fresh or t < last - 1e-9
+            dt = 0.0 if fresh else t - last
+            now = t
+            clock = t if fresh else float(state.clock[0]) + dt
+        else:
+            dt = 0.0 if fresh else self.control_dt_
+            now = 0.0 if fresh else last + self.control_dt_
+            clock = 0.0 if fresh else float(state.clock[0]) + dt
+        self._filter_one(state, fresh, observed)
+        waited = 0.0 if fresh else float(state.waited[0])
+        s = clock / self.duration_
+        hold = False
+        aim = math.nan
+        if self.max_wait > 0:
+            lead = (self.lookahead + 1.0) * self.control_dt_ / self.duration_
+            for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
+                prev = state.reached.get(j)
+                reached = False if fresh or prev is None else bool(prev[0])
+                due = not reached and s >= s_l - lead
+                if due and hand is not None:
+                    mcol, vcol = self._cols[frame]
+                    row = self._rows(np.full(1, s_l))
+                    d = hand.shape[1]
+                    target, _ = frame_targets(
+                        state.position[frame],
+                        state.rotation[frame],
+                        row[:, mcol][:, :d],
+                        row[:, vcol][:, :d],
+                    )
+                    spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
+                    tol = np.maximum(self.reach_tolerance, 3.0 * spread)
+                    close = bool(np.linalg.norm(hand - target, axis=1)[0] <= tol[0])
+                    reached = reached or close
+                    if not close:
+                        hold = True
+                        if math.isnan(aim):
+                            aim = s_l
+                state.reached[j] = np.array([reached])
+            for ev, s_e in self.event_phases_.items():
+                flags = observed.events.get(ev)
+                if flags is None:
+                    continue
+                prev = state.seen.get(ev)
+                seen = (False if fresh or prev is None else bool(prev[0])) or bool(flags[0])
+                state.seen[ev] = np.array([seen])
+                hold = hold or (not seen and s >= s_e)
+        hold = hold and waited + dt <= self.max_wait and not fresh
+        clock_arr = np.array([clock - dt if hold else clock])
+        state.clock = clock_arr
+        state.waited = np.array([waited + dt if hold else waited])
+        state.last_time = np.array([now])
+        state.fresh = np.zeros(1, dtype=bool)
+        return clock_arr, np.array([aim if hold else math.nan])
+
+    def _filter_one(self, state: PolicyState, fresh: bool, observed: Any) -> None:
+        """:meth:`_filter_frames` for one environment on plain floats."""
+        r = self.frame_noise**2
+        q = r / FILTER_WINDOW**2
+        for name in self.frame_names_[1:]:
+            if name not in observed.frames:
+                self._filter_frames(state, np.array([fresh]), observed)  # raises the error
+            z_arr, R = observed.frames[name]
+            flag = observed.valid.get(name)
+            valid = True if flag is None else bool(flag[0])
+            if name not in state.position:
+                state.position[name] = z_arr.copy()
+                state.variance[name] = np.full(1, r)
+                state.rotation[name] = np.array(R, dtype=float)
+                state.outliers[name] = np.zeros(1, dtype=np.int64)
+            pos = state.position[name]
+            take = fresh or valid
+            if r == 0.0:
+                if take:
+                    pos[0] = z_arr[0]
+            else:
+                var = float(state.variance[name][0])
+                out = int(state.outliers[name][0])
+                z = z_arr[0].tolist()
+                p = pos[0].tolist()
+                var_p = var + q
+                nu = [zi - pi for zi, pi in zip(z, p, strict=True)]
+                S = var_p + r
+                ss = 0.0
+                for v in nu:
+                    ss += v * v
+                gate = ss > JUMP_GATE**2 * S * len(z)
+                out = out + 1 if valid and gate else 0
+                jump = fresh or (valid and gate and out >= 2)
+                upd = valid and not gate
+                K = var_p / S if upd else 0.0
+                if jump:
+                    pos[0] = z
+                    var, out = r, 0
+                else:
+                    pos[0] = [pi + K * v for pi, v in zip(p, nu, strict=True)]
+                    if valid:
+                        var = (1.0 - K) * var_p if upd else var_p
+                state.variance[name] = np.array([var])
+                state.outliers[name] = np.array([out], dtype=np.int64)
+            if take:
+                state.rotation[name][0] = R[0]
 
     def _filter_frames(self, state: PolicyState, fresh: NDArray[np.bool_], observed: Any) -> None:
         r = self.frame_noise**2
