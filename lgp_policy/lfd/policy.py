@@ -235,6 +235,8 @@ def hand_points(
     if q.ndim == 1:
         x, J = hand_points(robot, q[None], offset)
         return x[0], J[0]
+    if q.shape[0] == 1 and offset is not None:
+        return _hand_points_one(robot, q, offset)
     both = getattr(robot, "pose_and_jacobian", None)
     if both is not None:
         p, R, J6 = both(q)
@@ -258,6 +260,34 @@ def hand_points(
     )
     J2 = Jp - offset * cross
     return np.concatenate([p, p - offset * z], axis=1), np.concatenate([Jp, J2], axis=1)
+
+
+def _hand_points_one(
+    robot: Any, q: NDArray[np.float64], offset: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`hand_points` with an offset for one ``q (1, k)``, on 2-D arrays (fewer calls)."""
+    both = getattr(robot, "pose_and_jacobian", None)
+    if both is not None:
+        p, R, J6 = both(q)
+    else:
+        p, R = robot.forward_pose(q)
+        J6 = np.asarray(robot.jacobian(q), dtype=float)
+    d = p.shape[-1]
+    p, J6 = p[0], J6[0]
+    z = R[0, :, -1]
+    Jp, Jw = J6[:d], J6[d:]
+    cross = np.empty_like(Jw)  # omega_i x z, as in hand_points
+    zx, zy, zz = z.tolist()
+    np.subtract(Jw[1] * zz, Jw[2] * zy, out=cross[0])
+    np.subtract(Jw[2] * zx, Jw[0] * zz, out=cross[1])
+    np.subtract(Jw[0] * zy, Jw[1] * zx, out=cross[2])
+    x = np.empty((1, 2 * d))
+    x[0, :d] = p
+    x[0, d:] = p - offset * z
+    J = np.empty((1, 2 * d, J6.shape[1]))
+    J[0, :d] = Jp
+    J[0, d:] = Jp - offset * cross
+    return x, J
 
 
 def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
@@ -579,6 +609,11 @@ class GPDemonstrationPolicy:
     def _rows(self, s: NDArray[np.float64]) -> NDArray[np.float64]:
         """Linear interpolation of the table at phases ``s (n,)`` -> ``(n, D)``."""
         g = len(self.phase_grid_)
+        if s.shape == (1,):  # the same operations on one float
+            xf = min(max(float(s[0]), 0.0), 1.0) * (g - 1)
+            j = min(int(xf), g - 2)
+            wf = xf - j
+            return ((1.0 - wf) * self._table[j] + wf * self._table[j + 1])[None]
         x = np.clip(s, 0.0, 1.0) * (g - 1)
         i = np.minimum(x.astype(np.intp), g - 2)
         w = (x - i)[:, None]
