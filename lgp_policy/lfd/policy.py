@@ -632,7 +632,7 @@ class GPDemonstrationPolicy:
             raise ValueError(
                 f"observation must have shape ({dim},) or (n_envs, {dim}), got {obs.shape}"
             )
-        if not np.all(np.isfinite(obs)):
+        if not np.isfinite(obs).all():
             raise ValueError("observation contains NaN or inf")
         return (obs[None] if single else obs), single
 

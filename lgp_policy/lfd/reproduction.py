@@ -218,5 +218,5 @@ def reproduction_step(
 
 def limit_step(dq: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:
     """Scale each row of ``dq (n, k)`` so that ``max |dq_j| <= max_step``, keeping its direction."""
-    peak = np.max(np.abs(dq), axis=-1, keepdims=True)
+    peak = np.abs(dq).max(axis=-1, keepdims=True)
     return dq * np.minimum(1.0, max_step / np.maximum(peak, 1e-300))
