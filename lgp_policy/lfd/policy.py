@@ -237,12 +237,7 @@ def hand_points(
         return x[0], J[0]
     if q.shape[0] == 1 and offset is not None:
         return _hand_points_one(robot, q, offset)
-    both = getattr(robot, "pose_and_jacobian", None)
-    if both is not None:
-        p, R, J6 = both(q)
-    else:
-        p, R = robot.forward_pose(q)
-        J6 = np.asarray(robot.jacobian(q), dtype=float)
+    p, R, J6 = _pose_and_jacobian(robot, q)
     d = p.shape[-1]
     Jp = J6[:, :d]
     if offset is None:
@@ -262,16 +257,22 @@ def hand_points(
     return np.concatenate([p, p - offset * z], axis=1), np.concatenate([Jp, J2], axis=1)
 
 
+def _pose_and_jacobian(
+    robot: Any, q: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """``forward_pose`` and ``jacobian`` of a batch, in one pass where the robot offers it."""
+    both = getattr(robot, "pose_and_jacobian", None)
+    if both is not None:
+        return both(q)
+    p, R = robot.forward_pose(q)
+    return p, R, np.asarray(robot.jacobian(q), dtype=float)
+
+
 def _hand_points_one(
     robot: Any, q: NDArray[np.float64], offset: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """:func:`hand_points` with an offset for one ``q (1, k)``, on 2-D arrays (fewer calls)."""
-    both = getattr(robot, "pose_and_jacobian", None)
-    if both is not None:
-        p, R, J6 = both(q)
-    else:
-        p, R = robot.forward_pose(q)
-        J6 = np.asarray(robot.jacobian(q), dtype=float)
+    p, R, J6 = _pose_and_jacobian(robot, q)
     d = p.shape[-1]
     p, J6 = p[0], J6[0]
     z = R[0, :, -1]
@@ -686,19 +687,7 @@ class GPDemonstrationPolicy:
                 reached = np.where(fresh, False, state.reached.get(j, np.zeros(n, bool)))
                 due = ~reached & (s >= s_l - lead)
                 if np.any(due) and hand is not None:
-                    mcol, vcol = self._cols[frame]
-                    row = self._rows(np.full(n, s_l))
-                    d = hand.shape[1]
-                    target, _ = frame_targets(
-                        state.position[frame],
-                        state.rotation[frame],
-                        row[:, mcol][:, :d],
-                        row[:, vcol][:, :d],
-                    )
-                    # a frame that is loose there (demonstrations disagree) asks for no precision
-                    spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
-                    tol = np.maximum(self.reach_tolerance, 3.0 * spread)
-                    close = np.linalg.norm(hand - target, axis=1) <= tol
+                    close = self._hand_at_landmark(state, frame, s_l, hand)
                     reached = reached | (due & close)
                     hold |= due & ~close
                     aim = np.where(due & ~close & np.isnan(aim), s_l, aim)
@@ -716,6 +705,24 @@ class GPDemonstrationPolicy:
         state.last_time = now
         state.fresh = np.zeros(n, dtype=bool)
         return state.clock, np.where(hold, aim, np.nan)
+
+    def _hand_at_landmark(
+        self, state: PolicyState, frame: str, s_l: float, hand: NDArray[np.float64]
+    ) -> NDArray[np.bool_]:
+        """Per row, whether the hand ``(n, d)`` is at the target of ``frame`` at phase ``s_l``."""
+        mcol, vcol = self._cols[frame]
+        row = self._rows(np.full(hand.shape[0], s_l))
+        d = hand.shape[1]
+        target, _ = frame_targets(
+            state.position[frame],
+            state.rotation[frame],
+            row[:, mcol][:, :d],
+            row[:, vcol][:, :d],
+        )
+        # a frame that is loose there (demonstrations disagree) asks for no precision
+        spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
+        tol = np.maximum(self.reach_tolerance, 3.0 * spread)
+        return np.asarray(np.linalg.norm(hand - target, axis=1) <= tol)
 
     def _advance_one(
         self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
@@ -747,18 +754,7 @@ class GPDemonstrationPolicy:
                 reached = False if fresh or prev is None else bool(prev[0])
                 due = not reached and s >= s_l - lead
                 if due and hand is not None:
-                    mcol, vcol = self._cols[frame]
-                    row = self._rows(np.full(1, s_l))
-                    d = hand.shape[1]
-                    target, _ = frame_targets(
-                        state.position[frame],
-                        state.rotation[frame],
-                        row[:, mcol][:, :d],
-                        row[:, vcol][:, :d],
-                    )
-                    spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
-                    tol = np.maximum(self.reach_tolerance, 3.0 * spread)
-                    close = bool(np.linalg.norm(hand - target, axis=1)[0] <= tol[0])
+                    close = bool(self._hand_at_landmark(state, frame, s_l, hand)[0])
                     reached = reached or close
                     if not close:
                         hold = True
