@@ -235,12 +235,9 @@ def hand_points(
     if q.ndim == 1:
         x, J = hand_points(robot, q[None], offset)
         return x[0], J[0]
-    both = getattr(robot, "pose_and_jacobian", None)
-    if both is not None:
-        p, R, J6 = both(q)
-    else:
-        p, R = robot.forward_pose(q)
-        J6 = np.asarray(robot.jacobian(q), dtype=float)
+    if q.shape[0] == 1 and offset is not None:
+        return _hand_points_one(robot, q, offset)
+    p, R, J6 = _pose_and_jacobian(robot, q)
     d = p.shape[-1]
     Jp = J6[:, :d]
     if offset is None:
@@ -258,6 +255,40 @@ def hand_points(
     )
     J2 = Jp - offset * cross
     return np.concatenate([p, p - offset * z], axis=1), np.concatenate([Jp, J2], axis=1)
+
+
+def _pose_and_jacobian(
+    robot: Any, q: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """``forward_pose`` and ``jacobian`` of a batch, in one pass where the robot offers it."""
+    both = getattr(robot, "pose_and_jacobian", None)
+    if both is not None:
+        return both(q)
+    p, R = robot.forward_pose(q)
+    return p, R, np.asarray(robot.jacobian(q), dtype=float)
+
+
+def _hand_points_one(
+    robot: Any, q: NDArray[np.float64], offset: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`hand_points` with an offset for one ``q (1, k)``, on 2-D arrays (fewer calls)."""
+    p, R, J6 = _pose_and_jacobian(robot, q)
+    d = p.shape[-1]
+    p, J6 = p[0], J6[0]
+    z = R[0, :, -1]
+    Jp, Jw = J6[:d], J6[d:]
+    cross = np.empty_like(Jw)  # omega_i x z, as in hand_points
+    zx, zy, zz = z.tolist()
+    np.subtract(Jw[1] * zz, Jw[2] * zy, out=cross[0])
+    np.subtract(Jw[2] * zx, Jw[0] * zz, out=cross[1])
+    np.subtract(Jw[0] * zy, Jw[1] * zx, out=cross[2])
+    x = np.empty((1, 2 * d))
+    x[0, :d] = p
+    x[0, d:] = p - offset * z
+    J = np.empty((1, 2 * d, J6.shape[1]))
+    J[0, :d] = Jp
+    J[0, d:] = Jp - offset * cross
+    return x, J
 
 
 def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
@@ -579,6 +610,11 @@ class GPDemonstrationPolicy:
     def _rows(self, s: NDArray[np.float64]) -> NDArray[np.float64]:
         """Linear interpolation of the table at phases ``s (n,)`` -> ``(n, D)``."""
         g = len(self.phase_grid_)
+        if s.shape == (1,):  # the same operations on one float
+            xf = min(max(float(s[0]), 0.0), 1.0) * (g - 1)
+            j = min(int(xf), g - 2)
+            wf = xf - j
+            return ((1.0 - wf) * self._table[j] + wf * self._table[j + 1])[None]
         x = np.clip(s, 0.0, 1.0) * (g - 1)
         i = np.minimum(x.astype(np.intp), g - 2)
         w = (x - i)[:, None]
@@ -597,7 +633,7 @@ class GPDemonstrationPolicy:
             raise ValueError(
                 f"observation must have shape ({dim},) or (n_envs, {dim}), got {obs.shape}"
             )
-        if not np.all(np.isfinite(obs)):
+        if not np.isfinite(obs).all():
             raise ValueError("observation contains NaN or inf")
         return (obs[None] if single else obs), single
 
@@ -628,6 +664,8 @@ class GPDemonstrationPolicy:
         """
         t_obs = observed.time
         n = len(state)
+        if n == 1:
+            return self._advance_one(state, observed, hand)
         fresh = state.fresh.copy()
         if t_obs is not None:
             fresh |= t_obs < state.last_time - 1e-9
@@ -649,19 +687,7 @@ class GPDemonstrationPolicy:
                 reached = np.where(fresh, False, state.reached.get(j, np.zeros(n, bool)))
                 due = ~reached & (s >= s_l - lead)
                 if np.any(due) and hand is not None:
-                    mcol, vcol = self._cols[frame]
-                    row = self._rows(np.full(n, s_l))
-                    d = hand.shape[1]
-                    target, _ = frame_targets(
-                        state.position[frame],
-                        state.rotation[frame],
-                        row[:, mcol][:, :d],
-                        row[:, vcol][:, :d],
-                    )
-                    # a frame that is loose there (demonstrations disagree) asks for no precision
-                    spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
-                    tol = np.maximum(self.reach_tolerance, 3.0 * spread)
-                    close = np.linalg.norm(hand - target, axis=1) <= tol
+                    close = self._hand_at_landmark(state, frame, s_l, hand)
                     reached = reached | (due & close)
                     hold |= due & ~close
                     aim = np.where(due & ~close & np.isnan(aim), s_l, aim)
@@ -679,6 +705,125 @@ class GPDemonstrationPolicy:
         state.last_time = now
         state.fresh = np.zeros(n, dtype=bool)
         return state.clock, np.where(hold, aim, np.nan)
+
+    def _hand_at_landmark(
+        self, state: PolicyState, frame: str, s_l: float, hand: NDArray[np.float64]
+    ) -> NDArray[np.bool_]:
+        """Per row, whether the hand ``(n, d)`` is at the target of ``frame`` at phase ``s_l``."""
+        mcol, vcol = self._cols[frame]
+        row = self._rows(np.full(hand.shape[0], s_l))
+        d = hand.shape[1]
+        target, _ = frame_targets(
+            state.position[frame],
+            state.rotation[frame],
+            row[:, mcol][:, :d],
+            row[:, vcol][:, :d],
+        )
+        # a frame that is loose there (demonstrations disagree) asks for no precision
+        spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
+        tol = np.maximum(self.reach_tolerance, 3.0 * spread)
+        return np.asarray(np.linalg.norm(hand - target, axis=1) <= tol)
+
+    def _advance_one(
+        self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`_advance` for one environment on plain floats (the same operations in the same
+        order, so the same results; a batch of one is the common control loop)."""
+        t_obs = observed.time
+        last = float(state.last_time[0])
+        fresh = bool(state.fresh[0])
+        if t_obs is not None:
+            t = float(t_obs[0])
+            fresh = fresh or t < last - 1e-9
+            dt = 0.0 if fresh else t - last
+            now = t
+            clock = t if fresh else float(state.clock[0]) + dt
+        else:
+            dt = 0.0 if fresh else self.control_dt_
+            now = 0.0 if fresh else last + self.control_dt_
+            clock = 0.0 if fresh else float(state.clock[0]) + dt
+        self._filter_one(state, fresh, observed)
+        waited = 0.0 if fresh else float(state.waited[0])
+        s = clock / self.duration_
+        hold = False
+        aim = math.nan
+        if self.max_wait > 0:
+            lead = (self.lookahead + 1.0) * self.control_dt_ / self.duration_
+            for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
+                prev = state.reached.get(j)
+                reached = False if fresh or prev is None else bool(prev[0])
+                due = not reached and s >= s_l - lead
+                if due and hand is not None:
+                    close = bool(self._hand_at_landmark(state, frame, s_l, hand)[0])
+                    reached = reached or close
+                    if not close:
+                        hold = True
+                        if math.isnan(aim):
+                            aim = s_l
+                state.reached[j] = np.array([reached])
+            for ev, s_e in self.event_phases_.items():
+                flags = observed.events.get(ev)
+                if flags is None:
+                    continue
+                prev = state.seen.get(ev)
+                seen = (False if fresh or prev is None else bool(prev[0])) or bool(flags[0])
+                state.seen[ev] = np.array([seen])
+                hold = hold or (not seen and s >= s_e)
+        hold = hold and waited + dt <= self.max_wait and not fresh
+        clock_arr = np.array([clock - dt if hold else clock])
+        state.clock = clock_arr
+        state.waited = np.array([waited + dt if hold else waited])
+        state.last_time = np.array([now])
+        state.fresh = np.zeros(1, dtype=bool)
+        return clock_arr, np.array([aim if hold else math.nan])
+
+    def _filter_one(self, state: PolicyState, fresh: bool, observed: Any) -> None:
+        """:meth:`_filter_frames` for one environment on plain floats."""
+        r = self.frame_noise**2
+        q = r / FILTER_WINDOW**2
+        for name in self.frame_names_[1:]:
+            if name not in observed.frames:
+                self._filter_frames(state, np.array([fresh]), observed)  # raises the error
+            z_arr, R = observed.frames[name]
+            flag = observed.valid.get(name)
+            valid = True if flag is None else bool(flag[0])
+            if name not in state.position:
+                state.position[name] = z_arr.copy()
+                state.variance[name] = np.full(1, r)
+                state.rotation[name] = np.array(R, dtype=float)
+                state.outliers[name] = np.zeros(1, dtype=np.int64)
+            pos = state.position[name]
+            take = fresh or valid
+            if r == 0.0:
+                if take:
+                    pos[0] = z_arr[0]
+            else:
+                var = float(state.variance[name][0])
+                out = int(state.outliers[name][0])
+                z = z_arr[0].tolist()
+                p = pos[0].tolist()
+                var_p = var + q
+                nu = [zi - pi for zi, pi in zip(z, p, strict=True)]
+                S = var_p + r
+                ss = 0.0
+                for v in nu:
+                    ss += v * v
+                gate = ss > JUMP_GATE**2 * S * len(z)
+                out = out + 1 if valid and gate else 0
+                jump = fresh or (valid and gate and out >= 2)
+                upd = valid and not gate
+                K = var_p / S if upd else 0.0
+                if jump:
+                    pos[0] = z
+                    var, out = r, 0
+                else:
+                    pos[0] = [pi + K * v for pi, v in zip(p, nu, strict=True)]
+                    if valid:
+                        var = (1.0 - K) * var_p if upd else var_p
+                state.variance[name] = np.array([var])
+                state.outliers[name] = np.array([out], dtype=np.int64)
+            if take:
+                state.rotation[name][0] = R[0]
 
     def _filter_frames(self, state: PolicyState, fresh: NDArray[np.bool_], observed: Any) -> None:
         r = self.frame_noise**2

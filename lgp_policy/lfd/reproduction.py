@@ -75,14 +75,26 @@ MIN_VARIANCE = 1e-10
 """Floor on every predicted variance (rad^2 or m^2), keeps precisions finite."""
 
 
+_EYES: dict[int, NDArray[np.float64]] = {}
+
+
+def _eye(k: int) -> NDArray[np.float64]:
+    """The read-only identity ``(k, k)`` (made once per size)."""
+    eye = _EYES.get(k)
+    if eye is None:
+        eye = _EYES[k] = np.eye(k)
+        eye.setflags(write=False)
+    return eye
+
+
 def damped_pseudoinverse(
     jacobian: ArrayLike, damping: float = DEFAULT_DAMPING
 ) -> NDArray[np.float64]:
     """``J^T (J J^T + damping^2 I)^-1`` for ``J (..., p, k)``; returns ``(..., k, p)``."""
     J = np.asarray(jacobian, dtype=float)
-    JJt = J @ np.swapaxes(J, -1, -2)
-    JJt = JJt + damping**2 * np.eye(J.shape[-2])
-    return np.swapaxes(np.linalg.solve(JJt, J), -1, -2)
+    JJt = J @ J.mT
+    JJt = JJt + damping**2 * _eye(J.shape[-2])
+    return np.linalg.solve(JJt, J).mT
 
 
 def frame_targets(
@@ -103,12 +115,13 @@ def frame_targets(
     n, d = origin.shape
     b = mean.shape[1] // d
     m = mean.reshape(n, b, d)
-    pos = (origin[:, None, :] + m @ np.swapaxes(rotation, -1, -2)).reshape(n, b * d)
+    Rt = rotation.mT
+    pos = (origin[:, None, :] + m @ Rt).reshape(n, b * d)
     inv = 1.0 / np.maximum(var, MIN_VARIANCE)
     prec = np.zeros((n, b * d, b * d))
     for j in range(b):
         blk = slice(j * d, (j + 1) * d)
-        prec[:, blk, blk] = (rotation * inv[:, None, blk]) @ np.swapaxes(rotation, -1, -2)
+        prec[:, blk, blk] = (rotation * inv[:, None, blk]) @ Rt
     return pos, prec
 
 
@@ -174,15 +187,15 @@ def reproduction_step(
     de = joint_target - q  # line 15
     lam_theta = 1.0 / np.maximum(joint_var, MIN_VARIANCE)
     Lam = np.zeros((n, k, k))
-    Lam[:, np.arange(k), np.arange(k)] = lam_theta + ridge
+    Lam.reshape(n, k * k)[:, :: k + 1] = lam_theta + ridge  # the diagonals
     eta = lam_theta * de
     if targets:
         if task_pos is None or jacobian is None:
             raise ValueError("frame targets need task_pos and jacobian")
         J = jacobian
-        Jt = np.swapaxes(J, -1, -2)
+        Jt = J.mT
         J_pinv = damped_pseudoinverse(J, damping)  # line 10
-        N = np.eye(k) - J_pinv @ J
+        N = _eye(k) - J_pinv @ J
         null_term = alpha * (N @ de[:, :, None])[:, :, 0]
         if null_space_std is None:
             null_prec = (N * lam_theta[:, None, :]) @ N
@@ -194,7 +207,7 @@ def reproduction_step(
             P = Jt @ prec @ J + null_prec  # line 17, information form
             Lam += P
             eta += (P @ mean[:, :, None])[:, :, 0]
-    Lam = 0.5 * (Lam + np.swapaxes(Lam, -1, -2))
+    Lam = 0.5 * (Lam + Lam.mT)
     if return_cov:
         cov = np.linalg.inv(Lam)
         dq: NDArray[Any] = (cov @ eta[:, :, None])[:, :, 0]  # line 19
@@ -205,5 +218,5 @@ def reproduction_step(
 
 def limit_step(dq: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:
     """Scale each row of ``dq (n, k)`` so that ``max |dq_j| <= max_step``, keeping its direction."""
-    peak = np.max(np.abs(dq), axis=-1, keepdims=True)
+    peak = np.abs(dq).max(axis=-1, keepdims=True)
     return dq * np.minimum(1.0, max_step / np.maximum(peak, 1e-300))

@@ -180,10 +180,11 @@ class _DeltaAction:
     ) -> NDArray[np.float32]:
         delta = np.asarray(step, dtype=float) / self.max_step
         if self.gripper is None:
-            return np.clip(delta, -1.0, 1.0).astype(np.float32)
+            return delta.clip(-1.0, 1.0).astype(np.float32)
         g = self.gripper
         grip = -1.0 + 2.0 * (np.asarray(gripper, dtype=float) - g.closed) / (g.open - g.closed)
-        return np.clip(np.column_stack([delta, grip]), -1.0, 1.0).astype(np.float32)
+        both = np.concatenate([delta, grip.reshape(-1, 1)], axis=-1)
+        return both.clip(-1.0, 1.0).astype(np.float32)
 
 
 class JointDeltaAction(_DeltaAction):

@@ -87,8 +87,12 @@ def rotation_from_angle(angle: NDArray[np.float64], dim: int) -> NDArray[np.floa
     The last result is reused when the angles repeat (a static object observed every step)."""
     a = np.asarray(angle, dtype=float).reshape(-1)
     last_a, last_dim, last_R = _LAST_ROTATION
-    if last_dim == dim and last_a is not None and np.array_equal(a, last_a):
-        return last_R
+    if last_dim == dim and last_a is not None and a.shape == last_a.shape:
+        if a.shape == (1,):
+            if a[0] == last_a[0]:
+                return last_R
+        elif np.array_equal(a, last_a):
+            return last_R
     from scipy.spatial.transform import Rotation
 
     R3 = Rotation.from_euler("z", a[:, None]).as_matrix()

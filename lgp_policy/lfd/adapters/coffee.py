@@ -47,6 +47,10 @@ __all__ = [
 HELD_DISTANCE = 0.03
 _HELD_OPENING = (0.04, 0.075)
 _CONTROL_DT = 0.04
+_CUP, _EE, _GRIPPER = OBS_SLICES["cup_pos"], OBS_SLICES["ee_pos"], OBS_SLICES["gripper"].start
+_HALF_CUP = np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
 
 
 class PandaModel:
@@ -128,9 +132,10 @@ def cup_held(observation: NDArray[np.float64]) -> NDArray[np.bool_]:
     """Whether the gripper holds the cup, per row of ``(n, OBS_DIM)`` observations: the grasp
     point within :data:`HELD_DISTANCE` of the cup's middle, fingers resting on the cup."""
     obs = np.asarray(observation, dtype=float)
-    middle = obs[:, OBS_SLICES["cup_pos"]] + np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
-    near = np.linalg.norm(obs[:, OBS_SLICES["ee_pos"]] - middle, axis=1) < HELD_DISTANCE
-    g = obs[:, OBS_SLICES["gripper"]][:, 0]
+    middle = obs[:, _CUP] + _HALF_CUP
+    offset = obs[:, _EE] - middle
+    near = np.sqrt(np.add.reduce(offset * offset, axis=1)) < HELD_DISTANCE  # np.linalg.norm
+    g = obs[:, _GRIPPER]
     return near & (g > _HELD_OPENING[0]) & (g < _HELD_OPENING[1])
 
 
@@ -159,6 +164,8 @@ class CoffeeAdapter:
         self.track_cup = bool(track_cup)
         self.robot = PandaModel()
         self.action_map = JointDeltaAction(MAX_JOINT_STEP, self.gripper)
+        self._time, self._yaw = OBS_SLICES["time"].start, OBS_SLICES["machine_yaw"].start
+        self._joints, self._machine = OBS_SLICES["joint_pos"], OBS_SLICES["machine_pos"]
 
     def read(self, observation: NDArray[np.float64]) -> Observed:
         obs = observation
@@ -166,13 +173,13 @@ class CoffeeAdapter:
         cup = obs[:, OBS_SLICES["cup_pos" if self.track_cup else "cup_init_pos"]]
         n = obs.shape[0]
         return Observed(
-            time=obs[:, OBS_SLICES["time"]][:, 0],
-            state=obs[:, OBS_SLICES["joint_pos"]],
+            time=obs[:, self._time],
+            state=obs[:, self._joints],
             frames={
-                "cup": (cup, np.broadcast_to(np.eye(3), (n, 3, 3))),
+                "cup": (cup, np.broadcast_to(_EYE3, (n, 3, 3))),
                 "machine": (
-                    obs[:, OBS_SLICES["machine_pos"]],
-                    rotation_from_angle(obs[:, OBS_SLICES["machine_yaw"]][:, 0], 3),
+                    obs[:, self._machine],
+                    rotation_from_angle(obs[:, self._yaw], 3),
                 ),
             },
             valid={"cup": ~held} if self.track_cup else {},

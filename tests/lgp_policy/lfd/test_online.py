@@ -130,3 +130,23 @@ def test_the_robot_must_match_the_demonstrations(ex):
     )
     with pytest.raises(ValueError, match="2 entries, the robot"):
         GPDemonstrationPolicy(adapter=three_d, n_steps=20, n_grid=20).fit(demos)
+
+
+def test_one_observation_matches_the_batch_path(policy, ex, single_matches_batch):
+    """Noise, a pushed object (gate, then jump), a held object, a hand that cannot move (the
+    waits) and a reset in the middle of the episode."""
+    rng = np.random.default_rng(1)
+    obs = _obs(ex)
+    rows, starts = [], []
+    for i in range(int(policy.duration_ / ex.DT) + 20):
+        o = obs.copy()
+        o[0] = i * ex.DT
+        o[5:7] += rng.normal(0.0, 0.005, 2) + (0.05 if i > 30 else 0.0)
+        if 60 < i < 70:
+            o[4] = 1.0
+        rows.append(o)
+        starts.append(i in (0, 90))
+    state = None
+    for o, first in zip(rows, starts, strict=True):
+        _a, state = policy.predict(o, state=state, episode_start=np.array([first]))
+    single_matches_batch(policy, rows, starts)

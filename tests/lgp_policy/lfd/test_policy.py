@@ -282,3 +282,18 @@ def test_unknown_members_are_not_read(policy, tmp_path):
 def test_unfitted(policy):
     with pytest.raises(RuntimeError, match="not fitted"):
         GPDemonstrationPolicy().predict(np.zeros(OBS_DIM, np.float32))
+
+
+def test_one_observation_matches_the_batch_path_on_a_rollout(policy, single_matches_batch):
+    """A recorded episode of the policy itself, then a second one after ``episode_start``."""
+    env = gym.make(gym_coffee.ENV_ID)
+    rows, starts = [], []
+    for seed in (10_000, 10_001):
+        obs, _ = env.reset(seed=seed)
+        for i in range(40):
+            rows.append(obs)
+            starts.append(i == 0)
+            action, _ = policy.predict(obs, episode_start=np.array([i == 0]))
+            obs, *_ = env.step(action)
+    env.close()
+    single_matches_batch(policy, rows, starts)
