@@ -155,7 +155,7 @@ def trace_from_episode(policy: Any, episode: Any) -> dict[str, Any]:
     """
     import inspect
 
-    from gym_coffee.env import object_frames, obs_part
+    from gym_coffee.env import obs_part
     from lgp_policy.lfd.reproduction import frame_estimate
 
     if episode.observations is None:
@@ -176,7 +176,9 @@ def trace_from_episode(policy: Any, episode: Any) -> dict[str, Any]:
         actions = np.asarray(dist.action)
     if episode.actions is not None and not np.allclose(actions, episode.actions, atol=1e-6):
         raise RuntimeError("replaying the policy on the episode gave other actions")
-    frames = object_frames(obs[0])
+    # the frames as the policy reads them (its adapter), at the first observation
+    read = policy.adapter_.read(obs[:1])
+    frames = {name: (pos[0], rot[0]) for name, (pos, rot) in read.frames.items()}
     targets = {}
     for n in policy.frame_names_:
         if n not in frames:
