@@ -400,8 +400,10 @@ class HeteroscedasticGP(ParamsMixin):
     Duplicated inputs are replicates (see :class:`~lgp_policy.gp.GaussianProcess`); the noise
     estimate at an input averages its replicates. Multiple targets are fitted as independent
     models (one noise process each), kept in ``estimators_`` (``None`` for a single target).
-    An EM that stops without converging (its objective decreased, or ``max_em_iter`` was
-    reached) keeps its best iteration and emits a :class:`ConvergenceWarning`.
+    An EM that stops without converging keeps its best iteration and records why in
+    ``em_status_``: "objective decreased" (it has passed its best iteration, the usual end of
+    this non-monotone EM) or "max_em_iter reached", which also emits a
+    :class:`ConvergenceWarning`.
 
     Attributes:
         gp_: final GP of ``f`` with ``alpha = r(x_i)`` (normalised units); the homoscedastic GP
@@ -506,7 +508,7 @@ class HeteroscedasticGP(ParamsMixin):
             log_noise_bounds=(2 * math.log(lo * work), 2 * math.log(hi * work)),
         )
         self._set_state(result, 0)
-        if not result.converged:
+        if result.status == "max_em_iter reached":
             em_warning(result.status, type(self).__name__)
 
     def _set_state(self, result: EMResult, index: int) -> None:

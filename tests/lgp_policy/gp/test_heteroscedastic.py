@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
+from lgp_policy.gp._base import ConvergenceWarning
 from lgp_policy.gp.exact import GaussianProcess
 from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 
@@ -24,7 +27,10 @@ def fitted():
     rng = np.random.default_rng(1)
     X, y = goldberg(300, rng)
     X_test, y_test = goldberg(3000, rng)
-    het = HeteroscedasticGP(random_state=0).fit(X, y)
+    with warnings.catch_warnings():
+        # an EM that passed its best iteration is recorded (em_status_), not warned about
+        warnings.simplefilter("error", ConvergenceWarning)
+        het = HeteroscedasticGP(random_state=0).fit(X, y)
     hom = GaussianProcess().fit(X, y)
     return het, hom, X_test, y_test
 
