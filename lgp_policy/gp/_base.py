@@ -12,6 +12,12 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from lgp_policy.gp._threads import with_single_blas_thread
+from lgp_policy.gp._validation import check_X
+
 __all__ = ["ConvergenceWarning", "ParamsMixin"]
 
 
@@ -58,3 +64,64 @@ class ParamsMixin:
         for name, sub_params in nested.items():
             getattr(self, name).set_params(**sub_params)
         return self
+
+
+class NoisePredictionsMixin:
+    """``predict``, ``predict_latent`` and ``noise_variance`` of the GPs with a noise model
+    (:class:`~lgp_policy.gp.HeteroscedasticGP`, :class:`~lgp_policy.gp.LocalGP`), from one
+    ``_predict_normalized(X) -> (latent mean, latent variance, r(x))`` in normalised units.
+    A model fitted to several targets delegates to its per-target ``estimators_``."""
+
+    estimators_: Any
+    n_features_in_: int
+    _y_mean: Any
+    _y_std: Any
+
+    def _check_fitted(self) -> None:  # pragma: no cover - every subclass defines it
+        raise NotImplementedError
+
+    def _predict_normalized(self, X: NDArray[np.float64]) -> tuple[Any, Any, Any]:
+        raise NotImplementedError  # pragma: no cover
+
+    def _out(self, a: Any) -> Any:
+        return a
+
+    def _stack(self, method: str, X: ArrayLike, **kw: Any) -> Any:
+        outs = [getattr(est, method)(X, **kw) for est in self.estimators_ or []]
+        if isinstance(outs[0], tuple):
+            return tuple(np.stack(parts, axis=1) for parts in zip(*outs, strict=True))
+        return np.stack(outs, axis=1)
+
+    @with_single_blas_thread
+    def predict(self, X: ArrayLike, return_std: bool = False) -> Any:
+        """Mean (Eq. 5) and, with ``return_std``, the std of Eq. (6): ``sqrt(var_f + r(x))``,
+        the noise included."""
+        self._check_fitted()
+        if self.estimators_:
+            return self._stack("predict", X, return_std=return_std)
+        X = check_X(X, n_features=self.n_features_in_)
+        mean, var, r = self._predict_normalized(X)
+        mean_out = self._out(mean * self._y_std + self._y_mean)
+        if not return_std:
+            return mean_out
+        return mean_out, self._out(np.sqrt(var + r) * self._y_std)
+
+    @with_single_blas_thread
+    def predict_latent(self, X: ArrayLike) -> Any:
+        """Mean and noise-free std of ``f(X)``."""
+        self._check_fitted()
+        if self.estimators_:
+            return self._stack("predict_latent", X)
+        X = check_X(X, n_features=self.n_features_in_)
+        mean, var, _ = self._predict_normalized(X)
+        return self._out(mean * self._y_std + self._y_mean), self._out(np.sqrt(var) * self._y_std)
+
+    @with_single_blas_thread
+    def noise_variance(self, X: ArrayLike) -> Any:
+        """The noise variance r(x) at new inputs (Eq. 6's ``R*``), in units of y^2."""
+        self._check_fitted()
+        if self.estimators_:
+            return self._stack("noise_variance", X)
+        X = check_X(X, n_features=self.n_features_in_)
+        _, _, r = self._predict_normalized(X)
+        return self._out(r * self._y_std**2)

@@ -31,9 +31,9 @@ import numpy as np
 import scipy.special
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy.gp._base import ConvergenceWarning, ParamsMixin
+from lgp_policy.gp._base import ConvergenceWarning, NoisePredictionsMixin, ParamsMixin
 from lgp_policy.gp._threads import with_single_blas_thread
-from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
+from lgp_policy.gp._validation import check_random_state, check_X_y
 from lgp_policy.gp.exact import (
     GaussianProcess,
     Optimizer,
@@ -375,7 +375,7 @@ def em_warning(status: str, where: str) -> None:
     )
 
 
-class HeteroscedasticGP(ParamsMixin):
+class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
     """GP with input-dependent noise ``r(x)`` learnt by most-likely EM (Kersting et al. 2007).
 
     Args:
@@ -542,12 +542,6 @@ class HeteroscedasticGP(ParamsMixin):
         if not hasattr(self, "estimators_"):
             raise ValueError(f"This {type(self).__name__} is not fitted yet; call fit(X, y) first")
 
-    def _stack(self, method: str, X, **kw):
-        outs = [getattr(est, method)(X, **kw) for est in self.estimators_ or []]
-        if isinstance(outs[0], tuple):
-            return tuple(np.stack(parts, axis=1) for parts in zip(*outs, strict=True))
-        return np.stack(outs, axis=1)
-
     def _log_noise_normalized(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
         """``log r(X)`` in normalised units, within ``log_noise_bounds_`` (never overflows)."""
         if self.noise_gp_ is None:
@@ -558,38 +552,6 @@ class HeteroscedasticGP(ParamsMixin):
         """Latent mean ``(n,)``, latent variance ``(n,)`` and r(x) ``(n,)``, normalised units."""
         mean, var = self.gp_._predict_normalized(X)
         return mean[:, 0], var, np.exp(self._log_noise_normalized(X))
-
-    @with_single_blas_thread
-    def predict(self, X: ArrayLike, return_std: bool = False):
-        """Mean (Eq. 5) and, with ``return_std``, the std of Eq. (6): ``sqrt(var_f + r(x))``."""
-        self._check_fitted()
-        if self.estimators_:
-            return self._stack("predict", X, return_std=return_std)
-        X = check_X(X, n_features=self.n_features_in_)
-        mean, var, r = self._predict_normalized(X)
-        mean = mean * self._y_std + self._y_mean
-        if not return_std:
-            return mean
-        return mean, np.sqrt(var + r) * self._y_std  # Eq. (6)
-
-    @with_single_blas_thread
-    def predict_latent(self, X: ArrayLike):
-        """Mean and noise-free std of ``f(X)``."""
-        self._check_fitted()
-        if self.estimators_:
-            return self._stack("predict_latent", X)
-        X = check_X(X, n_features=self.n_features_in_)
-        mean, var, _ = self._predict_normalized(X)
-        return mean * self._y_std + self._y_mean, np.sqrt(var) * self._y_std
-
-    @with_single_blas_thread
-    def noise_variance(self, X: ArrayLike) -> NDArray[np.float64]:
-        """r(x) at new inputs (Eq. 6's ``R*``), in units of y^2: ``(n,)`` or ``(n, n_targets)``."""
-        self._check_fitted()
-        if self.estimators_:
-            return self._stack("noise_variance", X)
-        X = check_X(X, n_features=self.n_features_in_)
-        return np.exp(self._log_noise_normalized(X)) * self._y_std**2
 
     def log_marginal_likelihood(self, theta: ArrayLike | None = None, eval_gradient: bool = False):
         """Eq. (4) of the final GP (signal hyperparameters ``theta``, noise ``R`` fixed)."""

@@ -61,9 +61,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import logsumexp
 
-from lgp_policy.gp._base import ParamsMixin
+from lgp_policy.gp._base import NoisePredictionsMixin, ParamsMixin
 from lgp_policy.gp._threads import with_single_blas_thread
-from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
+from lgp_policy.gp._validation import check_random_state, check_X_y
 from lgp_policy.gp.exact import (
     GaussianProcess,
     Optimizer,
@@ -99,7 +99,7 @@ models."""
 SKIP_DISTANCE = 9.0
 
 
-class LocalGP(ParamsMixin):
+class LocalGP(NoisePredictionsMixin, ParamsMixin):
     """Local (heteroscedastic) GP regression, Algorithms 1 and 2 of the paper.
 
     Args:
@@ -626,44 +626,8 @@ class LocalGP(ParamsMixin):
     def _out(self, a):
         return a[:, 0] if self._single_target else a
 
-    def _stack(self, method: str, X, **kw):
-        outs = [getattr(est, method)(X, **kw) for est in self.estimators_ or []]
-        if isinstance(outs[0], tuple):
-            return tuple(np.stack(parts, axis=1) for parts in zip(*outs, strict=True))
-        return np.stack(outs, axis=1)
-
-    @with_single_blas_thread
-    def predict(self, X: ArrayLike, return_std: bool = False):
-        """Combined mean and, with ``return_std``, std including the noise ``r(x)``."""
-        self._check_fitted()
-        if self.estimators_:
-            return self._stack("predict", X, return_std=return_std)
-        X = check_X(X, n_features=self.n_features_in_)
-        mean, v, r = self._combine(X)
-        mean_out = self._out(mean * self._y_std + self._y_mean)
-        if not return_std:
-            return mean_out
-        return mean_out, self._out(np.sqrt(v + r) * self._y_std)
-
-    @with_single_blas_thread
-    def predict_latent(self, X: ArrayLike):
-        """Combined latent mean and noise-free std."""
-        self._check_fitted()
-        if self.estimators_:
-            return self._stack("predict_latent", X)
-        X = check_X(X, n_features=self.n_features_in_)
-        mean, v, _ = self._combine(X)
-        return self._out(mean * self._y_std + self._y_mean), self._out(np.sqrt(v) * self._y_std)
-
-    @with_single_blas_thread
-    def noise_variance(self, X: ArrayLike) -> NDArray[np.float64]:
-        """Noise variance ``r(x)`` blended from the local models, in units of y^2."""
-        self._check_fitted()
-        if self.estimators_:
-            return self._stack("noise_variance", X)
-        X = check_X(X, n_features=self.n_features_in_)
-        _, _, r = self._combine(X)
-        return self._out(r * self._y_std**2)
+    def _predict_normalized(self, X):
+        return self._combine(X)
 
     def log_marginal_likelihood(self, theta: ArrayLike | None = None, eval_gradient: bool = False):
         """Sum of the local models' log marginal likelihoods (standardised targets)."""
