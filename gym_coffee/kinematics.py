@@ -74,7 +74,8 @@ class PandaKinematics:
         rotated.
 
     Results for the last joint vector are cached, so calling :meth:`forward_kinematics` and
-    :meth:`position_jacobian` with the same ``q`` computes the chain once.
+    :meth:`position_jacobian` with the same ``q`` computes the chain once;
+    :meth:`pose_and_jacobian` returns the pose and the Jacobian of one pass without the cache.
 
     Example:
         >>> kin = PandaKinematics()
@@ -92,17 +93,17 @@ class PandaKinematics:
         self._q: NDArray[np.float64] | None = None
         self._pos = np.zeros(3)
         self._rot = np.eye(3)
-        self._jac_pos = np.zeros((3, 7))
-        self._axes: list[tuple[float, float, float]] = []
+        self._jac = np.zeros((6, 7))
 
-    def _update(self, q: ArrayLike) -> None:
-        q = np.asarray(q, dtype=np.float64)
-        if self._q is not None and np.array_equal(q, self._q):
-            return
+    def _chain(
+        self, q: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """One pass of the chain: grasp point (3,), hand rotation (3, 3), geometric Jacobian (6, 7).
+
+        Plain floats (columns x, y, z of the current frame's rotation and its origin p): for
+        3-vectors this is several times faster than numpy; the three arrays are built once."""
         if q.shape != (7,):
             raise ValueError(f"q must have shape (7,), got {q.shape}")
-        # Plain-float chain (columns x, y, z of the current frame's rotation and its origin p): for
-        # 3-vectors this is several times faster than numpy.
         cos, sin = np.cos(q).tolist(), np.sin(q).tolist()
         x0, x1, x2 = 1.0, 0.0, 0.0
         y0, y1, y2 = 0.0, 1.0, 0.0
@@ -138,22 +139,38 @@ class PandaKinematics:
             origins.append((p0, p1, p2))
         d = GRASP_OFFSET
         e0, e1, e2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
-        jac = []
-        for (a0, a1, a2), (o0, o1, o2) in zip(axes, origins, strict=False):  # z_i x (p_ee - p_i)
+        j0: list[float] = []
+        j1: list[float] = []
+        j2: list[float] = []
+        for (a0, a1, a2), (o0, o1, o2) in zip(axes, origins, strict=True):  # z_i x (p_ee - p_i)
             r0, r1, r2 = e0 - o0, e1 - o1, e2 - o2
-            jac.append((a1 * r2 - a2 * r1, a2 * r0 - a0 * r2, a0 * r1 - a1 * r0))
-        self._pos = np.array([e0, e1, e2])
-        self._jac_pos = np.array(jac).T
-        self._axes = axes
+            j0.append(a1 * r2 - a2 * r1)
+            j1.append(a2 * r0 - a0 * r2)
+            j2.append(a0 * r1 - a1 * r0)
+        w0, w1, w2 = zip(*axes, strict=True)
         ch, sh = _HAND_CS  # hand frame = R @ Rz(hand yaw)
-        self._rot = np.array(
+        rot = np.array(
             [
                 [ch * x0 + sh * y0, ch * y0 - sh * x0, z0],
                 [ch * x1 + sh * y1, ch * y1 - sh * x1, z1],
                 [ch * x2 + sh * y2, ch * y2 - sh * x2, z2],
             ]
         )
+        return np.array([e0, e1, e2]), rot, np.array([j0, j1, j2, w0, w1, w2])
+
+    def _update(self, q: ArrayLike) -> None:
+        q = np.asarray(q, dtype=np.float64)
+        if self._q is not None and np.array_equal(q, self._q):
+            return
+        self._pos, self._rot, self._jac = self._chain(q)
         self._q = q.copy()
+
+    def pose_and_jacobian(
+        self, q: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`forward_pose` and :meth:`jacobian` in one pass of the chain (new arrays; the
+        cache is neither read nor written)."""
+        return self._chain(np.asarray(q, dtype=np.float64))
 
     def forward_kinematics(self, q: ArrayLike) -> NDArray[np.float64]:
         """Grasp-point position (3,) in the world frame for joint positions ``q`` (7,)."""
@@ -172,12 +189,12 @@ class PandaKinematics:
     def position_jacobian(self, q: ArrayLike) -> NDArray[np.float64]:
         """Position Jacobian (3, 7) of the grasp point: column i is ``z_i x (p_ee - p_i)``."""
         self._update(q)
-        return self._jac_pos.copy()
+        return self._jac[:3].copy()
 
     def jacobian(self, q: ArrayLike) -> NDArray[np.float64]:
         """Geometric Jacobian (6, 7): position rows, then angular-velocity rows (the joint axes)."""
         self._update(q)
-        return np.vstack([self._jac_pos, np.array(self._axes).T])
+        return self._jac.copy()
 
     def ik_step(
         self,

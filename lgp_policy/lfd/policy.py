@@ -72,6 +72,7 @@ from lgp_policy.lfd.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
+    FrameStack,
     frame_targets,
     limit_step,
     reproduction_step,
@@ -271,24 +272,25 @@ def _pose_and_jacobian(
 def _hand_points_one(
     robot: Any, q: NDArray[np.float64], offset: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`hand_points` with an offset for one ``q (1, k)``, on 2-D arrays (fewer calls)."""
+    """:func:`hand_points` with an offset for one ``q (1, k)`` (``d = 3``), in a few calls:
+    ``omega_i x z = -[z]_x omega_i``, so ``[J_p; J_p - offset (omega x z)] = T J6`` with
+    ``T = [[I, 0], [I, offset [z]_x]]``."""
     p, R, J6 = _pose_and_jacobian(robot, q)
-    d = p.shape[-1]
-    p, J6 = p[0], J6[0]
-    z = R[0, :, -1]
-    Jp, Jw = J6[:d], J6[d:]
-    cross = np.empty_like(Jw)  # omega_i x z, as in hand_points
-    zx, zy, zz = z.tolist()
-    np.subtract(Jw[1] * zz, Jw[2] * zy, out=cross[0])
-    np.subtract(Jw[2] * zx, Jw[0] * zz, out=cross[1])
-    np.subtract(Jw[0] * zy, Jw[1] * zx, out=cross[2])
-    x = np.empty((1, 2 * d))
-    x[0, :d] = p
-    x[0, d:] = p - offset * z
-    J = np.empty((1, 2 * d, J6.shape[1]))
-    J[0, :d] = Jp
-    J[0, d:] = Jp - offset * cross
-    return x, J
+    p0, p1, p2 = p[0].tolist()
+    z0, z1, z2 = R[0, :, 2].tolist()
+    a, b, c = offset * z0, offset * z1, offset * z2
+    T = np.array(
+        [
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0, 0.0, -c, b],
+            [0.0, 1.0, 0.0, c, 0.0, -a],
+            [0.0, 0.0, 1.0, -b, a, 0.0],
+        ]
+    )
+    x = np.array([[p0, p1, p2, p0 - a, p1 - b, p2 - c]])
+    return x, (T @ J6[0])[None]
 
 
 def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
@@ -620,6 +622,19 @@ class GPDemonstrationPolicy:
         w = (x - i)[:, None]
         return (1.0 - w) * self._table[i] + w * self._table[i + 1]
 
+    def _frame_columns(self) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """Table columns of the object frames' means and variances, ``(m, p)`` each."""
+        cached = getattr(self, "_frame_cols", None)
+        if cached is None or cached[0] is not self._table:
+            names = self.frame_names_[1:]
+            spans = [[np.arange(c.start, c.stop) for c in self._cols[f]] for f in names]
+            cached = self._frame_cols = (
+                self._table,
+                np.array([m for m, _ in spans], dtype=np.intp).reshape(len(names), -1),
+                np.array([v for _, v in spans], dtype=np.intp).reshape(len(names), -1),
+            )
+        return cached[1], cached[2]
+
     def _as_batch(self, observation: ArrayLike) -> tuple[NDArray[np.float64], bool]:
         dim = int(self.adapter_.obs_dim)
         try:
@@ -909,34 +924,40 @@ class GPDemonstrationPolicy:
         k = q.shape[1]
         jm, jv = self._cols[JOINT_FRAME]
         grip_row = row
-        if np.any(~np.isnan(aim)):  # waiting to reach a gripper event's target: aim at it
+        if not np.isnan(aim).all():  # waiting to reach a gripper event's target: aim at it
             row = self._rows(np.where(np.isnan(aim), s, aim))
-        joint_mean, joint_var = row[:, jm], row[:, jv]
-        targets = []
-        if x is not None:
-            for name in self.frame_names_[1:]:
-                mcol, vcol = self._cols[name]
-                targets.append(
-                    frame_targets(
-                        mem.position[name], mem.rotation[name], row[:, mcol], row[:, vcol]
-                    )
-                )
+        one: int | slice = 0 if n == 1 else slice(None)  # one robot: unbatched arrays
+        r = row[one]
+        frames = None
+        if x is not None and J is not None:
+            names = self.frame_names_[1:]
+            mcols, vcols = self._frame_columns()
+            pos, rot = [mem.position[f] for f in names], [mem.rotation[f] for f in names]
+            frames = FrameStack(
+                np.concatenate(pos) if n == 1 else np.stack(pos, axis=1),
+                np.concatenate(rot) if n == 1 else np.stack(rot, axis=1),
+                r[..., mcols],
+                r[..., vcols],
+            )
+            x, J = x[one], J[one]
         dq, fused = reproduction_step(
-            q,
-            joint_mean[:, :k],
-            joint_var[:, :k],
+            q[one],
+            r[..., jm][..., :k],
+            r[..., jv][..., :k],
             x,
             J,
-            targets,
+            frames,
             alpha=self.alpha,
             null_space_std=self.null_space_std,
             damping=DEFAULT_DAMPING,
             ridge=DEFAULT_RIDGE,
             return_cov=cov,
         )
-        gripper = grip_row[:, jm][:, k] if joint_mean.shape[1] > k else np.zeros(n)
+        if n == 1:
+            dq, fused = dq[None], None if fused is None else fused[None]
+        gripper = grip_row[:, jm][:, k] if jm.stop - jm.start > k else np.zeros(n)
         action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
-        return single, mem, np.clip(s, 0.0, 1.0), action, dq, fused, gripper, row
+        return single, mem, np.minimum(np.maximum(s, 0.0), 1.0), action, dq, fused, gripper, row
 
     def predict(
         self,

@@ -45,12 +45,12 @@ Jacobian ``J (n, p, k)`` come from a :class:`~lgp_policy.lfd.robots.RobotModel`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.linalg.lapack import dposv as _dposv
 
 __all__ = [
     "DEFAULT_ALPHA",
@@ -58,6 +58,7 @@ __all__ = [
     "DEFAULT_RIDGE",
     "MIN_VARIANCE",
     "FrameEstimate",
+    "FrameStack",
     "damped_pseudoinverse",
     "frame_estimate",
     "frame_targets",
@@ -83,6 +84,19 @@ def _eye(k: int) -> NDArray[np.float64]:
     eye = _EYES.get(k)
     if eye is None:
         eye = _EYES[k] = np.eye(k)
+        eye.setflags(write=False)
+    return eye
+
+
+_DAMPED: dict[tuple[int, float], NDArray[np.float64]] = {}
+
+
+def _damped_eye(p: int, damping: float) -> NDArray[np.float64]:
+    """The read-only ``damping^2 I`` ``(p, p)`` (made once per size and damping)."""
+    key = (p, damping)
+    eye = _DAMPED.get(key)
+    if eye is None:
+        eye = _DAMPED[key] = damping**2 * np.eye(p)
         eye.setflags(write=False)
     return eye
 
@@ -148,13 +162,32 @@ def frame_estimate(
     return FrameEstimate(pos[0], prec[0])
 
 
+class FrameStack(NamedTuple):
+    """The frames of Algorithm 3 for a batch of ``n`` robots, stacked over the ``m`` frames.
+
+    Attributes:
+        origin: ``(n, m, d)`` frame positions; rotation: ``(n, m, d, d)`` (columns: the frame's
+            axes in the world).
+        mean: ``(n, m, b d)``, the hand's ``b`` task points predicted in each frame's axes;
+            var: ``(n, m, b d)``, their predicted variances (per axis of the frame).
+
+    The world target of frame ``j`` is ``o_j + R_j mean_j`` per point, with the precision
+    ``R_j diag(1 / var_j) R_j^T`` per point (:func:`frame_targets`).
+    """
+
+    origin: NDArray[np.float64]
+    rotation: NDArray[np.float64]
+    mean: NDArray[np.float64]
+    var: NDArray[np.float64]
+
+
 def reproduction_step(
     q: NDArray[np.float64],
     joint_target: NDArray[np.float64],
     joint_var: NDArray[np.float64],
     task_pos: NDArray[np.float64] | None = None,
     jacobian: NDArray[np.float64] | None = None,
-    targets: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]] = (),
+    frames: FrameStack | None = None,
     *,
     alpha: float = DEFAULT_ALPHA,
     null_space_std: float | None = None,
@@ -165,14 +198,15 @@ def reproduction_step(
     """One iteration of Algorithm 3's loop (lines 6-19) for a batch of ``n`` robots.
 
     Args:
-        q: ``theta_t``, ``(n, k)``.
+        q: ``theta_t``, ``(n, k)``, or ``(k,)`` for one robot (then every argument drops its
+            leading ``n``; a batch of one is run that way too).
         joint_target: ``theta_hat_{t+1}``, the joint-space GP mean, ``(n, k)``.
         joint_var: its predicted variance, ``(n, k)``.
         task_pos: ``x_t``, the task vector (``p`` entries: one or more points on the hand),
-            ``(n, p)``; needed with ``targets``.
-        jacobian: ``J(theta_t)``, ``(n, p, k)``; needed with ``targets``.
-        targets: per frame, ``(position (n, p), precision (n, p, p))`` (see
-            :func:`frame_targets`).
+            ``(n, p)``; needed with ``frames``.
+        jacobian: ``J(theta_t)``, ``(n, p, k)``; needed with ``frames``.
+        frames: the frames' poses and the task-space GPs' predictions (:class:`FrameStack`), or
+            ``None`` (the joint-space estimate alone).
         alpha: weight of the null-space term (line 16).
         null_space_std: ``None`` (default): a frame's null-space information is the joint-space
             estimate's, projected; a float (rad): a fixed std instead (see the module docstring).
@@ -182,41 +216,124 @@ def reproduction_step(
 
     Returns:
         ``(dtheta (n, k), covariance (n, k, k) or None)``.
+
+    The sum over frames of the module docstring is computed in one pass over all of them
+    (equal to the frame-by-frame form up to rounding, tested): with ``J^+ = Z^T``,
+    ``Z = (J J^T + lambda^2 I)^-1 J``, ``dx_j`` the frame's world target minus ``x_t``,
+    ``W_j`` its precision, ``L_N`` the null-space information and ``t = alpha N de``::
+
+        sum_j Lambda^(j)              = J^T (sum_j W_j) J + m L_N
+        sum_j Lambda^(j) dtheta^(j)   = J^T sum_j W_j J Z^T dx_j + L_N Z^T sum_j dx_j
+                                        + (J^T (sum_j W_j) J + m L_N) t
+
+    where ``J^T W_j J`` and ``J^T W_j v`` are taken in the frame's own axes (``R_j^T J``, a
+    diagonal ``W``). One robot (``n = 1``) runs on 2-D arrays with LAPACK's Cholesky solver.
     """
-    n, k = q.shape
+    if frames is not None and (task_pos is None or jacobian is None):
+        raise ValueError("frames need task_pos and jacobian")
+    if q.ndim == 2 and q.shape[0] == 1:  # a batch of one: the unbatched path
+        dq, cov = reproduction_step(
+            q[0],
+            joint_target[0],
+            joint_var[0],
+            None if task_pos is None else task_pos[0],
+            None if jacobian is None else jacobian[0],
+            None if frames is None else FrameStack(*(a[0] for a in frames)),
+            alpha=alpha,
+            null_space_std=null_space_std,
+            damping=damping,
+            ridge=ridge,
+            return_cov=return_cov,
+        )
+        return dq[None], None if cov is None else cov[None]
+    return _step(
+        q,
+        joint_target,
+        joint_var,
+        task_pos,
+        jacobian,
+        frames,
+        alpha,
+        null_space_std,
+        damping,
+        ridge,
+        return_cov,
+    )
+
+
+def _spd_solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``A^-1 B`` for a symmetric positive definite ``A (k, k)`` (its upper triangle is read)."""
+    _c, x, info = _dposv(A, B)
+    if info != 0:  # not numerically positive definite (or invalid input): the general solver
+        return np.asarray(np.linalg.solve(0.5 * (A + A.T), B))
+    return np.asarray(x)
+
+
+def _solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``A^-1 B`` for one ``(k, k)`` (Cholesky) or a stack ``(n, k, k)`` of symmetric positive
+    definite matrices; ``B`` ``(..., k, r)``."""
+    if A.ndim == 2:
+        return _spd_solve(A, B)
+    return np.asarray(
+        np.linalg.solve(0.5 * (A + A.mT), np.broadcast_to(B, A.shape[:-2] + B.shape[-2:]))
+    )
+
+
+def _step(
+    q: NDArray[np.float64],
+    joint_target: NDArray[np.float64],
+    joint_var: NDArray[np.float64],
+    task_pos: NDArray[np.float64] | None,
+    J: NDArray[np.float64] | None,
+    frames: FrameStack | None,
+    alpha: float,
+    null_space_std: float | None,
+    damping: float,
+    ridge: float,
+    return_cov: bool,
+) -> tuple[NDArray[Any], NDArray[Any] | None]:
+    """:func:`reproduction_step` on ``(..., k)``: one robot ``(k,)`` or a batch ``(n, k)``."""
+    lead, k = q.shape[:-1], q.shape[-1]
     de = joint_target - q  # line 15
     lam_theta = 1.0 / np.maximum(joint_var, MIN_VARIANCE)
-    Lam = np.zeros((n, k, k))
-    Lam.reshape(n, k * k)[:, :: k + 1] = lam_theta + ridge  # the diagonals
     eta = lam_theta * de
-    if targets:
-        if task_pos is None or jacobian is None:
-            raise ValueError("frame targets need task_pos and jacobian")
-        J = jacobian
+    if frames is None or task_pos is None or J is None:
+        Lam = np.zeros((*lead, k, k))
+    else:
+        origin, rotation, mean, var = frames
+        m, d = origin.shape[-2:]
+        p = J.shape[-2]
+        b = p // d
         Jt = J.mT
-        J_pinv = damped_pseudoinverse(J, damping)  # line 10
-        N = _eye(k) - J_pinv @ J
-        null_term = alpha * (N @ de[:, :, None])[:, :, 0]
+        Z = _solve(J @ Jt + _damped_eye(p, damping), J)  # J^+ = Z^T (line 10)
+        N = _eye(k) - Z.mT @ J
         if null_space_std is None:
-            null_prec = (N * lam_theta[:, None, :]) @ N
+            null_prec = (N * lam_theta[..., None, :]) @ N
         else:
             null_prec = N / null_space_std**2
-        for pos, prec in targets:
-            dx = pos - task_pos  # line 14
-            mean = (J_pinv @ dx[:, :, None])[:, :, 0] + null_term  # line 16
-            P = Jt @ prec @ J + null_prec  # line 17, information form
-            Lam += P
-            eta += (P @ mean[:, :, None])[:, :, 0]
-    Lam = 0.5 * (Lam + Lam.mT)
-    if return_cov:
-        cov = np.linalg.inv(Lam)
-        dq: NDArray[Any] = (cov @ eta[:, :, None])[:, :, 0]  # line 19
-        return dq, cov
-    dq = np.linalg.solve(Lam, eta[:, :, None])[:, :, 0]
-    return dq, None
+        t = alpha * np.matvec(N, de)
+        # per frame: dx = o + R x_hat - x_t (line 14), dtheta = J^+ dx + t (line 16), (..., m, k)
+        Rt = rotation.mT
+        target = origin[..., None, :] + mean.reshape(*lead, m, b, d) @ Rt
+        dtheta = (target.reshape(*lead, m, p) - task_pos[..., None, :]) @ Z + t[..., None, :]
+        # J^T W J and J^T W J dtheta in each frame's axes: Y = R^T J per point, W = diag(1/var)
+        Y = (Rt[..., None, :, :] @ J.reshape(*lead, 1, b, d, k)).reshape(*lead, m * p, k)
+        u = np.matvec(Y.reshape(*lead, m, p, k), dtheta).reshape(*lead, m * p)
+        YtW = Y.mT * (1.0 / np.maximum(var, MIN_VARIANCE)).reshape(*lead, 1, m * p)
+        Lam = YtW @ Y + m * null_prec  # sum of the frames' Lambda^(j) (line 17, information form)
+        eta += np.matvec(YtW, u) + np.matvec(null_prec, dtheta.sum(axis=-2))
+    Lam.reshape(*lead, k * k)[..., :: k + 1] += lam_theta + ridge
+    if return_cov:  # line 19
+        cov = _solve(Lam, _eye(k))
+        return np.matvec(cov, eta), cov
+    if Lam.ndim == 2:
+        return _spd_solve(Lam, eta), None
+    return _solve(Lam, eta[..., None])[..., 0], None
 
 
 def limit_step(dq: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:
     """Scale each row of ``dq (n, k)`` so that ``max |dq_j| <= max_step``, keeping its direction."""
+    if dq.shape[0] == 1:  # the same arithmetic on one float
+        return dq * min(max_step / max(float(np.abs(dq).max()), 1e-300), 1.0)  # NaN stays
     peak = np.abs(dq).max(axis=-1, keepdims=True)
     return dq * np.minimum(1.0, max_step / np.maximum(peak, 1e-300))

@@ -178,13 +178,16 @@ class _DeltaAction:
     def __call__(
         self, q: NDArray[np.float64], step: NDArray[np.float64], gripper: NDArray[np.float64]
     ) -> NDArray[np.float32]:
-        delta = np.asarray(step, dtype=float) / self.max_step
-        if self.gripper is None:
-            return delta.clip(-1.0, 1.0).astype(np.float32)
+        step = np.asarray(step, dtype=float)
+        k = step.shape[-1]
         g = self.gripper
-        grip = -1.0 + 2.0 * (np.asarray(gripper, dtype=float) - g.closed) / (g.open - g.closed)
-        both = np.concatenate([delta, grip.reshape(-1, 1)], axis=-1)
-        return both.clip(-1.0, 1.0).astype(np.float32)
+        out = np.empty((*step.shape[:-1], k + (g is not None)))
+        np.divide(step, self.max_step, out=out[..., :k])
+        if g is not None:
+            out[..., k] = -1.0 + 2.0 * (np.asarray(gripper, dtype=float) - g.closed) / (
+                g.open - g.closed
+            )
+        return np.minimum(np.maximum(out, -1.0, out=out), 1.0, out=out).astype(np.float32)
 
 
 class JointDeltaAction(_DeltaAction):

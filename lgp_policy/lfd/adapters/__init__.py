@@ -78,27 +78,34 @@ class ObservationAdapter(Protocol):
         ...
 
 
-_LAST_ROTATION: list[Any] = [None, None, None]
+_ROTATIONS: dict[tuple[float, int], NDArray[Any]] = {}  # (angle, dim) -> read-only rotation
+_MAX_CACHED_ROTATIONS = 16
 
 
 def rotation_from_angle(angle: NDArray[np.float64], dim: int) -> NDArray[np.float64]:
-    """Rotations ``(n, d, d)`` by ``angle (n,)`` about the z axis (``d = 3``) or in the plane.
+    """Rotations ``(n, d, d)`` by ``angle (n,)`` about the z axis (``d = 3``) or in the plane
+    (read-only), in closed form from ``cos`` and ``sin``.
 
-    The last result is reused when the angles repeat (a static object observed every step)."""
+    One angle is looked up among the last few computed (static objects observed every step)."""
     a = np.asarray(angle, dtype=float).reshape(-1)
-    last_a, last_dim, last_R = _LAST_ROTATION
-    if last_dim == dim and last_a is not None and a.shape == last_a.shape:
-        if a.shape == (1,):
-            if a[0] == last_a[0]:
-                return last_R
-        elif np.array_equal(a, last_a):
-            return last_R
-    from scipy.spatial.transform import Rotation
-
-    R3 = Rotation.from_euler("z", a[:, None]).as_matrix()
-    R = R3 if dim == 3 else np.ascontiguousarray(R3[:, :2, :2])
+    key = (float(a[0]), dim) if a.shape == (1,) else None
+    if key is not None:
+        cached = _ROTATIONS.get(key)
+        if cached is not None:
+            return cached
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros((a.shape[0], dim, dim))
+    R[:, 0, 0] = c
+    R[:, 0, 1] = -s
+    R[:, 1, 0] = s
+    R[:, 1, 1] = c
+    if dim == 3:
+        R[:, 2, 2] = 1.0
     R.setflags(write=False)
-    _LAST_ROTATION[:] = [a.copy(), dim, R]
+    if key is not None:
+        if len(_ROTATIONS) >= _MAX_CACHED_ROTATIONS:
+            _ROTATIONS.clear()
+        _ROTATIONS[key] = R
     return R
 
 

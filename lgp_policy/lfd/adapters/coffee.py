@@ -125,9 +125,9 @@ class PandaModel:
         self, q: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """``forward_pose`` and ``jacobian`` of a batch ``(n, 7)`` in one pass of the chain."""
-        if q.shape[0] == 1:
-            p, R = self._one.forward_pose(q[0])
-            return p[None], R[None], self._one.jacobian(q[0])[None]
+        if q.shape[0] == 1:  # one pass of the plain-float chain
+            p, R, J = self._one.pose_and_jacobian(q[0])
+            return p[None], R[None], J[None]
         ee, R, axes, origins = self._chain(q)
         Jp = np.cross(axes, ee[:, None, :] - origins)
         return ee, R, np.concatenate([Jp, axes], axis=2).transpose(0, 2, 1)
