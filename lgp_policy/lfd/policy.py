@@ -293,6 +293,15 @@ def _hand_points_one(
     return x, (T @ J6[0])[None]
 
 
+def _put(flags: dict[Any, NDArray[np.bool_]], key: Any, value: bool) -> None:
+    """``flags[key] = [value]`` for one environment, in place where the array exists."""
+    arr = flags.get(key)
+    if arr is None:
+        flags[key] = np.array([value])
+    else:
+        arr[0] = value
+
+
 def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
     """Times at which a demonstration's gripper command crosses ``midpoint`` (closing or opening),
     linearly interpolated between control steps."""
@@ -775,22 +784,22 @@ class GPDemonstrationPolicy:
                         hold = True
                         if math.isnan(aim):
                             aim = s_l
-                state.reached[j] = np.array([reached])
+                _put(state.reached, j, reached)
             for ev, s_e in self.event_phases_.items():
                 flags = observed.events.get(ev)
                 if flags is None:
                     continue
                 prev = state.seen.get(ev)
                 seen = (False if fresh or prev is None else bool(prev[0])) or bool(flags[0])
-                state.seen[ev] = np.array([seen])
+                _put(state.seen, ev, seen)
                 hold = hold or (not seen and s >= s_e)
         hold = hold and waited + dt <= self.max_wait and not fresh
-        clock_arr = np.array([clock - dt if hold else clock])
-        state.clock = clock_arr
-        state.waited = np.array([waited + dt if hold else waited])
-        state.last_time = np.array([now])
+        # written in place: the state's arrays are its own (PolicyState.new, _advance)
+        state.clock[0] = clock - dt if hold else clock
+        state.waited[0] = waited + dt if hold else waited
+        state.last_time[0] = now
         state.fresh = np.zeros(1, dtype=bool)
-        return clock_arr, np.array([aim if hold else math.nan])
+        return state.clock, np.array([aim if hold else math.nan])
 
     def _filter_one(self, state: PolicyState, fresh: bool, observed: Any) -> None:
         """:meth:`_filter_frames` for one environment on plain floats."""
@@ -835,8 +844,8 @@ class GPDemonstrationPolicy:
                     pos[0] = [pi + K * v for pi, v in zip(p, nu, strict=True)]
                     if valid:
                         var = (1.0 - K) * var_p if upd else var_p
-                state.variance[name] = np.array([var])
-                state.outliers[name] = np.array([out], dtype=np.int64)
+                state.variance[name][0] = var
+                state.outliers[name][0] = out
             if take:
                 state.rotation[name][0] = R[0]
 
@@ -924,15 +933,16 @@ class GPDemonstrationPolicy:
         k = q.shape[1]
         jm, jv = self._cols[JOINT_FRAME]
         grip_row = row
-        if not np.isnan(aim).all():  # waiting to reach a gripper event's target: aim at it
+        if np.any(~np.isnan(aim)):  # waiting to reach a gripper event's target: aim at it
             row = self._rows(np.where(np.isnan(aim), s, aim))
+        joint_mean, joint_var = row[:, jm], row[:, jv]
         one: int | slice = 0 if n == 1 else slice(None)  # one robot: unbatched arrays
-        r = row[one]
         frames = None
         if x is not None and J is not None:
             names = self.frame_names_[1:]
             mcols, vcols = self._frame_columns()
             pos, rot = [mem.position[f] for f in names], [mem.rotation[f] for f in names]
+            r = row[one]
             frames = FrameStack(
                 np.concatenate(pos) if n == 1 else np.stack(pos, axis=1),
                 np.concatenate(rot) if n == 1 else np.stack(rot, axis=1),
@@ -942,8 +952,8 @@ class GPDemonstrationPolicy:
             x, J = x[one], J[one]
         dq, fused = reproduction_step(
             q[one],
-            r[..., jm][..., :k],
-            r[..., jv][..., :k],
+            joint_mean[one, :k],
+            joint_var[one, :k],
             x,
             J,
             frames,
@@ -955,7 +965,7 @@ class GPDemonstrationPolicy:
         )
         if n == 1:
             dq, fused = dq[None], None if fused is None else fused[None]
-        gripper = grip_row[:, jm][:, k] if jm.stop - jm.start > k else np.zeros(n)
+        gripper = grip_row[:, jm][:, k] if joint_mean.shape[1] > k else np.zeros(n)
         action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
         return single, mem, np.minimum(np.maximum(s, 0.0), 1.0), action, dq, fused, gripper, row
 
