@@ -841,7 +841,8 @@ class GPDemonstrationPolicy:
                     pos[0] = z
                     var, out = r, 0
                 else:
-                    pos[0] = [pi + K * v for pi, v in zip(p, nu, strict=True)]
+                    if K != 0.0:  # (K = 0 leaves the estimate as it is)
+                        pos[0] = [pi + K * v for pi, v in zip(p, nu, strict=True)]
                     if valid:
                         var = (1.0 - K) * var_p if upd else var_p
                 state.variance[name][0] = var

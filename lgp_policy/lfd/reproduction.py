@@ -217,66 +217,97 @@ def reproduction_step(
     Returns:
         ``(dtheta (n, k), covariance (n, k, k) or None)``.
 
-    The sum over frames of the module docstring is computed in one pass over all of them
-    (equal to the frame-by-frame form up to rounding, tested): with ``J^+ = Z^T``,
-    ``Z = (J J^T + lambda^2 I)^-1 J``, ``dx_j`` the frame's world target minus ``x_t``,
-    ``W_j`` its precision, ``L_N`` the null-space information and ``t = alpha N de``::
+    The frames are summed in one pass over all of them (equal to the frame-by-frame form up to
+    rounding; tested against it): with ``dtheta_j = J^+ dx_j + t`` (line 16, ``t`` the
+    null-space term), ``Lambda^(j) = J^T W_j J + L_N`` and ``Y`` stacking ``R_j^T J`` per frame
+    and point (the frame's own axes, where ``W_j = diag(1 / var_j)``)::
 
-        sum_j Lambda^(j)              = J^T (sum_j W_j) J + m L_N
-        sum_j Lambda^(j) dtheta^(j)   = J^T sum_j W_j J Z^T dx_j + L_N Z^T sum_j dx_j
-                                        + (J^T (sum_j W_j) J + m L_N) t
+        sum_j Lambda^(j)            = Y^T W Y + m L_N
+        sum_j Lambda^(j) dtheta_j   = Y^T W [Y_j dtheta_j]_j + L_N sum_j dtheta_j
 
-    where ``J^T W_j J`` and ``J^T W_j v`` are taken in the frame's own axes (``R_j^T J``, a
-    diagonal ``W``). One robot (``n = 1``) runs on 2-D arrays with LAPACK's Cholesky solver.
+    ``J^+ = Z^T`` with ``Z = (J J^T + lambda^2 I)^-1 J`` (a solve, no explicit inverse). One robot
+    (``q (k,)`` or a batch of one) runs on 2-D arrays with LAPACK's Cholesky solver.
     """
     if frames is not None and (task_pos is None or jacobian is None):
         raise ValueError("frames need task_pos and jacobian")
-    if q.ndim == 2 and q.shape[0] == 1:  # a batch of one: the unbatched path
-        dq, cov = reproduction_step(
+    args = (alpha, null_space_std, damping, ridge, return_cov)
+    if q.ndim == 1:
+        return _step_one(q, joint_target, joint_var, task_pos, jacobian, frames, *args)
+    if q.shape[0] == 1:  # a batch of one: the one-robot path
+        dq, cov = _step_one(
             q[0],
             joint_target[0],
             joint_var[0],
             None if task_pos is None else task_pos[0],
             None if jacobian is None else jacobian[0],
             None if frames is None else FrameStack(*(a[0] for a in frames)),
-            alpha=alpha,
-            null_space_std=null_space_std,
-            damping=damping,
-            ridge=ridge,
-            return_cov=return_cov,
+            *args,
         )
         return dq[None], None if cov is None else cov[None]
-    return _step(
-        q,
-        joint_target,
-        joint_var,
-        task_pos,
-        jacobian,
-        frames,
-        alpha,
-        null_space_std,
-        damping,
-        ridge,
-        return_cov,
-    )
+    return _step(q, joint_target, joint_var, task_pos, jacobian, frames, *args)
 
 
 def _spd_solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``A^-1 B`` for a symmetric positive definite ``A (k, k)`` (its upper triangle is read)."""
+    """``A^-1 B`` for a symmetric positive definite ``A (k, k)`` (LAPACK's Cholesky solver, which
+    reads the upper triangle); the general solver if ``A`` is not numerically positive definite."""
     _c, x, info = _dposv(A, B)
-    if info != 0:  # not numerically positive definite (or invalid input): the general solver
+    if info != 0:
         return np.asarray(np.linalg.solve(0.5 * (A + A.T), B))
     return np.asarray(x)
 
 
-def _solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``A^-1 B`` for one ``(k, k)`` (Cholesky) or a stack ``(n, k, k)`` of symmetric positive
-    definite matrices; ``B`` ``(..., k, r)``."""
-    if A.ndim == 2:
-        return _spd_solve(A, B)
-    return np.asarray(
-        np.linalg.solve(0.5 * (A + A.mT), np.broadcast_to(B, A.shape[:-2] + B.shape[-2:]))
-    )
+def _step_one(
+    q: NDArray[np.float64],
+    joint_target: NDArray[np.float64],
+    joint_var: NDArray[np.float64],
+    task_pos: NDArray[np.float64] | None,
+    J: NDArray[np.float64] | None,
+    frames: FrameStack | None,
+    alpha: float,
+    null_space_std: float | None,
+    damping: float,
+    ridge: float,
+    return_cov: bool,
+) -> tuple[NDArray[Any], NDArray[Any] | None]:
+    """:func:`_step` for one robot: ``q (k,)``, ``J (p, k)``, frames ``(m, ...)``; the same
+    arithmetic on 2-D arrays (fewer and cheaper calls) with a Cholesky solver."""
+    k = q.shape[0]
+    de = joint_target - q  # line 15
+    lam_theta = 1.0 / np.maximum(joint_var, MIN_VARIANCE)
+    eta = lam_theta * de
+    if frames is None or task_pos is None or J is None:
+        Lam = np.zeros((k, k))
+    else:
+        origin, rotation, mean, var = frames
+        m, d = origin.shape
+        p = J.shape[0]
+        b = p // d
+        Jt = J.T
+        A = J @ Jt
+        A += _damped_eye(p, damping)
+        Z = _spd_solve(A, J)  # J^+ = Z^T (line 10)
+        N = _eye(k) - Z.T @ J
+        if null_space_std is None:
+            null_prec = (N * lam_theta) @ N
+        else:
+            null_prec = N / null_space_std**2
+        t = alpha * (N @ de)
+        Rt = rotation.transpose(0, 2, 1)
+        target = origin[:, None, :] + mean.reshape(m, b, d) @ Rt
+        dtheta = (target.reshape(m, p) - task_pos) @ Z
+        dtheta += t
+        Y = (Rt[:, None] @ J.reshape(b, d, k)).reshape(m * p, k)
+        u = np.matvec(Y.reshape(m, p, k), dtheta).reshape(m * p)
+        YtW = Y.T * (1.0 / np.maximum(var.reshape(m * p), MIN_VARIANCE))
+        Lam = YtW @ Y
+        Lam += m * null_prec
+        eta += YtW @ u
+        eta += null_prec @ dtheta.sum(axis=0)
+    Lam.reshape(k * k)[:: k + 1] += lam_theta + ridge
+    if return_cov:  # line 19
+        cov = _spd_solve(Lam, _eye(k))
+        return cov @ eta, cov
+    return _spd_solve(Lam, eta), None
 
 
 def _step(
@@ -292,43 +323,51 @@ def _step(
     ridge: float,
     return_cov: bool,
 ) -> tuple[NDArray[Any], NDArray[Any] | None]:
-    """:func:`reproduction_step` on ``(..., k)``: one robot ``(k,)`` or a batch ``(n, k)``."""
-    lead, k = q.shape[:-1], q.shape[-1]
+    """:func:`reproduction_step` for a batch ``(n, k)`` (see its docstring for the sums)."""
+    n, k = q.shape
     de = joint_target - q  # line 15
     lam_theta = 1.0 / np.maximum(joint_var, MIN_VARIANCE)
     eta = lam_theta * de
     if frames is None or task_pos is None or J is None:
-        Lam = np.zeros((*lead, k, k))
+        Lam = np.zeros((n, k, k))
     else:
         origin, rotation, mean, var = frames
-        m, d = origin.shape[-2:]
-        p = J.shape[-2]
+        m, d = origin.shape[1:]
+        p = J.shape[1]
         b = p // d
         Jt = J.mT
         Z = _solve(J @ Jt + _damped_eye(p, damping), J)  # J^+ = Z^T (line 10)
         N = _eye(k) - Z.mT @ J
         if null_space_std is None:
-            null_prec = (N * lam_theta[..., None, :]) @ N
+            null_prec = (N * lam_theta[:, None, :]) @ N
         else:
             null_prec = N / null_space_std**2
         t = alpha * np.matvec(N, de)
-        # per frame: dx = o + R x_hat - x_t (line 14), dtheta = J^+ dx + t (line 16), (..., m, k)
+        # per frame: dx = o + R x_hat - x_t (line 14), dtheta = J^+ dx + t (line 16), (n, m, k)
         Rt = rotation.mT
-        target = origin[..., None, :] + mean.reshape(*lead, m, b, d) @ Rt
-        dtheta = (target.reshape(*lead, m, p) - task_pos[..., None, :]) @ Z + t[..., None, :]
+        target = origin[:, :, None, :] + mean.reshape(n, m, b, d) @ Rt
+        dtheta = (target.reshape(n, m, p) - task_pos[:, None, :]) @ Z
+        dtheta += t[:, None, :]
         # J^T W J and J^T W J dtheta in each frame's axes: Y = R^T J per point, W = diag(1/var)
-        Y = (Rt[..., None, :, :] @ J.reshape(*lead, 1, b, d, k)).reshape(*lead, m * p, k)
-        u = np.matvec(Y.reshape(*lead, m, p, k), dtheta).reshape(*lead, m * p)
-        YtW = Y.mT * (1.0 / np.maximum(var, MIN_VARIANCE)).reshape(*lead, 1, m * p)
-        Lam = YtW @ Y + m * null_prec  # sum of the frames' Lambda^(j) (line 17, information form)
-        eta += np.matvec(YtW, u) + np.matvec(null_prec, dtheta.sum(axis=-2))
-    Lam.reshape(*lead, k * k)[..., :: k + 1] += lam_theta + ridge
+        Y = (Rt[:, :, None] @ J.reshape(n, 1, b, d, k)).reshape(n, m * p, k)
+        u = np.matvec(Y.reshape(n, m, p, k), dtheta).reshape(n, m * p)
+        YtW = Y.mT * (1.0 / np.maximum(var, MIN_VARIANCE)).reshape(n, 1, m * p)
+        Lam = YtW @ Y  # sum of the frames' Lambda^(j) (line 17, information form)
+        Lam += m * null_prec
+        eta += np.matvec(YtW, u)
+        eta += np.matvec(null_prec, dtheta.sum(axis=1))
+    Lam.reshape(n, k * k)[:, :: k + 1] += lam_theta + ridge
     if return_cov:  # line 19
         cov = _solve(Lam, _eye(k))
         return np.matvec(cov, eta), cov
-    if Lam.ndim == 2:
-        return _spd_solve(Lam, eta), None
-    return _solve(Lam, eta[..., None])[..., 0], None
+    return _solve(Lam, eta[:, :, None])[:, :, 0], None
+
+
+def _solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``A^-1 B`` for a stack ``(n, k, k)`` of symmetric positive definite matrices (LU of the
+    symmetrised matrices); ``B`` ``(n, k, r)`` or ``(k, r)``."""
+    B = np.broadcast_to(B, A.shape[:-2] + B.shape[-2:])
+    return np.asarray(np.linalg.solve(0.5 * (A + A.mT), B))
 
 
 def limit_step(dq: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:

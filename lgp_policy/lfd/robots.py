@@ -184,9 +184,9 @@ class _DeltaAction:
         out = np.empty((*step.shape[:-1], k + (g is not None)))
         np.divide(step, self.max_step, out=out[..., :k])
         if g is not None:
-            out[..., k] = -1.0 + 2.0 * (np.asarray(gripper, dtype=float) - g.closed) / (
-                g.open - g.closed
-            )
+            arr = np.asarray(gripper, dtype=float)
+            grip = float(arr.reshape(-1)[0]) if arr.size == 1 else arr  # one: on a float
+            out[..., k] = -1.0 + 2.0 * (grip - g.closed) / (g.open - g.closed)
         return np.minimum(np.maximum(out, -1.0, out=out), 1.0, out=out).astype(np.float32)
 
 
