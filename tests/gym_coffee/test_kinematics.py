@@ -103,3 +103,24 @@ def test_action_from_targets_inverts_the_scaling(panda):
     batch = action_from_targets(np.tile(q, (4, 1)), np.tile(q + delta, (4, 1)), np.full(4, 0.03))
     assert batch.shape == (4, 8)
     np.testing.assert_allclose(batch, np.tile(action, (4, 1)))
+
+
+def test_pose_and_jacobian_is_one_pass_of_the_same_chain():
+    """pose_and_jacobian gives exactly forward_pose and jacobian (new arrays, cache untouched)."""
+    rng = np.random.default_rng(4)
+    kin = PandaKinematics(base_position=(0.1, -0.2, 0.3))
+    other = PandaKinematics(base_position=(0.1, -0.2, 0.3))
+    q0 = np.zeros(7)
+    cached = kin.jacobian(q0)
+    for _ in range(10):
+        q = rng.uniform(kin.joint_lower, kin.joint_upper)
+        pos, rot, jac = kin.pose_and_jacobian(q)
+        assert pos.shape == (3,) and rot.shape == (3, 3) and jac.shape == (6, 7)
+        p2, r2 = other.forward_pose(q)
+        np.testing.assert_array_equal(pos, p2)
+        np.testing.assert_array_equal(rot, r2)
+        np.testing.assert_array_equal(jac, other.jacobian(q))
+        jac[:] = 0.0  # the caller's own arrays
+    np.testing.assert_array_equal(kin.jacobian(q0), cached)
+    with pytest.raises(ValueError, match="shape"):
+        kin.pose_and_jacobian(np.zeros(6))
