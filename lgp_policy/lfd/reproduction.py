@@ -41,6 +41,8 @@ pseudo-inverse ``J^T (J J^T + lambda^2 I)^-1``.
 Every function works on a batch of ``n`` robots at once (one vectorised pass; the policy's
 ``predict`` on ``n`` observations) and needs only plain arrays: the task vector ``x (n, p)`` and its
 Jacobian ``J (n, p, k)`` come from a :class:`~lgp_policy.lfd.robots.RobotModel`.
+:func:`reproduction_step` sums the frames in one pass over all of them (:class:`FrameStack`) and
+runs one robot (the common control loop) on 2-D arrays with a Cholesky solver.
 """
 
 from __future__ import annotations
