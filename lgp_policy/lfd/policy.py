@@ -293,6 +293,10 @@ def _hand_points_one(
     return x, (T @ J6[0])[None]
 
 
+_NO_AIM = np.full(1, np.nan)  # one environment that is not waiting (read-only)
+_NO_AIM.setflags(write=False)
+
+
 def _put(flags: dict[Any, NDArray[np.bool_]], key: Any, value: bool) -> None:
     """``flags[key] = [value]`` for one environment, in place where the array exists."""
     arr = flags.get(key)
@@ -798,8 +802,8 @@ class GPDemonstrationPolicy:
         state.clock[0] = clock - dt if hold else clock
         state.waited[0] = waited + dt if hold else waited
         state.last_time[0] = now
-        state.fresh = np.zeros(1, dtype=bool)
-        return state.clock, np.array([aim if hold else math.nan])
+        state.fresh[0] = False
+        return state.clock, np.array([aim]) if hold else _NO_AIM
 
     def _filter_one(self, state: PolicyState, fresh: bool, observed: Any) -> None:
         """:meth:`_filter_frames` for one environment on plain floats."""
@@ -934,7 +938,8 @@ class GPDemonstrationPolicy:
         k = q.shape[1]
         jm, jv = self._cols[JOINT_FRAME]
         grip_row = row
-        if np.any(~np.isnan(aim)):  # waiting to reach a gripper event's target: aim at it
+        waiting = not math.isnan(aim[0]) if n == 1 else bool(np.any(~np.isnan(aim)))
+        if waiting:  # waiting to reach a gripper event's target: aim at it
             row = self._rows(np.where(np.isnan(aim), s, aim))
         joint_mean, joint_var = row[:, jm], row[:, jv]
         one: int | slice = 0 if n == 1 else slice(None)  # one robot: unbatched arrays

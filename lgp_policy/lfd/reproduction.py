@@ -375,6 +375,7 @@ def _solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64
 def limit_step(dq: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:
     """Scale each row of ``dq (n, k)`` so that ``max |dq_j| <= max_step``, keeping its direction."""
     if dq.shape[0] == 1:  # the same arithmetic on one float
-        return dq * min(max_step / max(float(np.abs(dq).max()), 1e-300), 1.0)  # NaN stays
+        peak = float(np.maximum.reduce(np.abs(dq), axis=None))
+        return dq * min(max_step / max(peak, 1e-300), 1.0)  # (a NaN stays NaN)
     peak = np.abs(dq).max(axis=-1, keepdims=True)
     return dq * np.minimum(1.0, max_step / np.maximum(peak, 1e-300))
