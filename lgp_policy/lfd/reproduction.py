@@ -338,7 +338,7 @@ def _step(
         p = J.shape[1]
         b = p // d
         Jt = J.mT
-        Z = _solve(J @ Jt + _damped_eye(p, damping), J)  # J^+ = Z^T (line 10)
+        Z = np.linalg.solve(J @ Jt + _damped_eye(p, damping), J)  # J^+ = Z^T (line 10)
         N = _eye(k) - Z.mT @ J
         if null_space_std is None:
             null_prec = (N * lam_theta[:, None, :]) @ N
