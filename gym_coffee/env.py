@@ -111,6 +111,7 @@ OBS_HIGH = np.concatenate([np.full(size, hi) for _, size, (_, hi) in _OBS_LAYOUT
 )
 
 REWARD_TERMS = ("reach", "carry", "press", "stage", "success", "failure")
+_REWARD_KEYS = tuple(f"reward_{name}" for name in REWARD_TERMS)
 STAGE_BONUS = 1.0
 SUCCESS_BONUS = 10.0
 FAILURE_PENALTY = -10.0
@@ -436,7 +437,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         state = self._read_state()
         obs = self._get_obs(state)
         info, failed = self._evaluate(state)
-        reward = float(sum(info[f"reward_{name}"] for name in REWARD_TERMS))
+        reward = float(sum(info[key] for key in _REWARD_KEYS))
         terminated = bool(info["is_success"] or failed)
         if self.render_mode == "human":
             self.render()
@@ -536,18 +537,15 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     def _simulate(self) -> None:
         """One control step of physics with the robot's commands set: the button's spring, its
-        hard stop (checked after every physics step, 2 us each), the clock."""
-        self.scene.apply_spring()
-        self.sim.step(self.scene.enforce_stop)
+        hard stop (checked after every physics step by the simulation, ~1 us each), the clock."""
+        self.sim.step()
         self._n_steps += 1
 
     def _read_state(self) -> _State:
         """The simulator's state that observation and evaluation need, read once per step."""
-        q, qd = self.robot.joint_states()
+        q, qd, gripper = self.robot.state()
         cup_pos, cup_quat = self.scene.cup_pose()
-        return _State(
-            q, qd, self.robot.gripper_opening(), cup_pos, cup_quat, self.scene.button_travel()
-        )
+        return _State(q, qd, gripper, cup_pos, cup_quat, self.scene.button_travel())
 
     def _get_obs(self, state: _State | None = None) -> NDArray[np.float32]:
         state = self._read_state() if state is None else state
@@ -589,16 +587,14 @@ class CoffeeEnv(gym.Env, EzPickle):
         # Grasped (latched): the cup is off the table between both fingers.
         if held and not scene.cup_on_table() and cup_pos[2] > TABLE_TOP_Z + 0.005:
             self._grasped = True
-        place_pos = scene.place_pos
-        offset = cup_pos - place_pos
-        cup_lin_vel, cup_ang_vel = self.sim.get_base_velocity("cup")
+        offset = cup_pos - scene.place_pos
+        # At rest (speeds read only when the pose qualifies: the velocity query changes nothing).
         placed = bool(
             tilt < CUP_UPRIGHT_TILT
             and np.hypot(offset[0], offset[1]) < PLACE_TOLERANCE
             and abs(offset[2]) < 0.01
-            and np.linalg.norm(cup_lin_vel) < CUP_REST_SPEED
-            and np.linalg.norm(cup_ang_vel) < CUP_REST_ANGULAR_SPEED
             and not touched
+            and self._cup_at_rest()
         )
         ee = self.kinematics.forward_kinematics(state.q)
         travel = state.travel
@@ -643,8 +639,15 @@ class CoffeeEnv(gym.Env, EzPickle):
             "stage": int(stage),
             "layout": dict(self._layout_info),
         }
-        info.update({f"reward_{name}": float(value) for name, value in terms.items()})
+        for key, value in zip(_REWARD_KEYS, terms.values(), strict=True):
+            info[key] = float(value)
         return info, failed
+
+    def _cup_at_rest(self) -> bool:
+        lin, ang = self.sim.get_base_velocity("cup")
+        return bool(
+            np.linalg.norm(lin) < CUP_REST_SPEED and np.linalg.norm(ang) < CUP_REST_ANGULAR_SPEED
+        )
 
     def _pushed_along_axis(self, ee: NDArray[np.float64]) -> bool:
         """Whether the grasp point moved along the button's axis since the button was at rest:

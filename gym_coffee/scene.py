@@ -274,6 +274,10 @@ class CoffeeScene:
                 use_fixed_base=True,
                 self_collision=True,  # the button's hard stop against the front panel
             )
+        # The button's hard stop (see :meth:`Simulation.set_joint_stop`): the button's cap also
+        # collides with the front panel after 8 mm, but a fast strike still pushed it up to 10 mm
+        # into the (soft) contact.
+        sim.set_joint_stop("machine", 0, BUTTON_MAX_TRAVEL)
         if "cup" not in sim.bodies:
             sim.load_urdf("cup", "cup.urdf", self.layout.cup_pos)
 
@@ -295,15 +299,6 @@ class CoffeeScene:
         sim.set_base_pose("cup", layout.cup_pos, (0.0, 0.0, 0.0, 1.0))
         sim.reset_joint_states("machine", [0], [0.0])  # the button, at rest
         self.apply_spring()
-
-    def enforce_stop(self) -> None:
-        """The button's hard stop: travel beyond ``BUTTON_MAX_TRAVEL`` is set back to it, at rest.
-
-        Called after every physics step. The button's cap also collides with the front panel
-        after 8 mm, but a fast strike still pushed it up to 10 mm into the (soft) contact.
-        """
-        if self.sim.joint_position("machine", 0) > BUTTON_MAX_TRAVEL:
-            self.sim.reset_joint_states("machine", [0], [BUTTON_MAX_TRAVEL])
 
     def apply_spring(self) -> None:
         """The button's return spring: a weak position motor towards travel 0."""
@@ -332,8 +327,8 @@ class CoffeeScene:
         return float(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
 
     def button_travel(self) -> float:
-        pos, _ = self.sim.get_joint_states("machine", [0])
-        return float(max(pos[0], 0.0))
+        """How far the button is pushed in (m, >= 0)."""
+        return max(self.sim.joint_position("machine", 0), 0.0)
 
     def robot_cup_contacts(self) -> tuple[bool, bool, bool]:
         """Whether the left finger, the right finger and any link of the robot touch the cup
