@@ -138,7 +138,8 @@ class Panda:
         self, q: NDArray[np.float64], action: NDArray[np.float64]
     ) -> NDArray[np.float64]:
         """Joint targets (7,) of a joint-mode action (8,) in [-1, 1] from measured joints ``q``."""
-        return np.clip(q + action[:7] * MAX_JOINT_STEP, self.joint_lower, self.joint_upper)
+        target = q + action[:7] * MAX_JOINT_STEP
+        return np.minimum(np.maximum(target, self.joint_lower), self.joint_upper)
 
     def joint_states(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Arm joint positions (7,) and velocities (7,)."""

