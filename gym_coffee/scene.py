@@ -302,7 +302,8 @@ class CoffeeScene:
         self.apply_spring()
 
     def apply_spring(self) -> None:
-        """The button's return spring: a weak position motor towards travel 0."""
+        """The button's return spring: a weak position motor towards travel 0 (set at every reset;
+        PyBullet keeps a motor's settings, also through the stop's joint resets)."""
         self.sim.control_joints(
             "machine", [0], [0.0], [BUTTON_SPRING_FORCE], [0.2], position_gain=0.1
         )
