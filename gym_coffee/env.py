@@ -557,8 +557,9 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.robot.reset(NEUTRAL_JOINTS)
 
     def _simulate(self) -> None:
-        """One control step of physics with the robot's commands set: the button's spring, its
-        hard stop (checked after every physics step by the simulation, ~1 us each), the clock."""
+        """One control step of physics with the robot's commands set (the button's spring is set
+        at reset; its hard stop is checked after every physics step by the simulation), the
+        clock."""
         self.sim.step()
         self._n_steps += 1
 
