@@ -109,8 +109,24 @@ OBS_LOW = np.concatenate([np.full(size, lo) for _, size, (lo, _) in _OBS_LAYOUT]
 OBS_HIGH = np.concatenate([np.full(size, hi) for _, size, (_, hi) in _OBS_LAYOUT]).astype(
     np.float32
 )
+# The bounds as float64 (observations are clipped before the cast to float32), and the parts'
+# positions (single values as indices).
+_OBS_LOW64 = OBS_LOW.astype(np.float64)
+_OBS_HIGH64 = OBS_HIGH.astype(np.float64)
+_TIME = OBS_SLICES["time"].start
+_JOINT_POS = OBS_SLICES["joint_pos"]
+_JOINT_VEL = OBS_SLICES["joint_vel"]
+_GRIPPER = OBS_SLICES["gripper"].start
+_EE_POS = OBS_SLICES["ee_pos"]
+_CUP_POS = OBS_SLICES["cup_pos"]
+_CUP_QUAT = OBS_SLICES["cup_quat"]
+_CUP_INIT_POS = OBS_SLICES["cup_init_pos"]
+_MACHINE_POS = OBS_SLICES["machine_pos"]
+_MACHINE_YAW = OBS_SLICES["machine_yaw"].start
+_BUTTON_TRAVEL = OBS_SLICES["button_travel"].start
 
 REWARD_TERMS = ("reach", "carry", "press", "stage", "success", "failure")
+_REWARD_KEYS = tuple(f"reward_{name}" for name in REWARD_TERMS)
 STAGE_BONUS = 1.0
 SUCCESS_BONUS = 10.0
 FAILURE_PENALTY = -10.0
@@ -139,6 +155,7 @@ class _State(NamedTuple):
     q: NDArray[np.float64]
     qd: NDArray[np.float64]
     gripper: float
+    ee: NDArray[np.float64]  # grasp point (forward kinematics of q)
     cup_pos: NDArray[np.float64]
     cup_quat: NDArray[np.float64]
     travel: float
@@ -436,7 +453,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         state = self._read_state()
         obs = self._get_obs(state)
         info, failed = self._evaluate(state)
-        reward = float(sum(info[f"reward_{name}"] for name in REWARD_TERMS))
+        reward = float(sum(info[key] for key in _REWARD_KEYS))
         terminated = bool(info["is_success"] or failed)
         if self.render_mode == "human":
             self.render()
@@ -505,8 +522,13 @@ class CoffeeEnv(gym.Env, EzPickle):
     def _check_action(self, action: Any) -> NDArray[np.float64]:
         """The action as float64, clipped to [-1, 1]; ValueError for a wrong shape or NaN/inf."""
         size = ACTION_TYPES[self.action_type]
-        array = check_vector(f"action (action_type={self.action_type!r})", action, (size,))
-        return np.clip(array, -1.0, 1.0)
+        if isinstance(action, np.ndarray) and action.shape == (size,) and action.dtype.kind == "f":
+            array = action.astype(np.float64)  # the usual action: only its values to check
+            if not np.isfinite(array).all():
+                array = check_vector(f"action (action_type={self.action_type!r})", action, (size,))
+        else:
+            array = check_vector(f"action (action_type={self.action_type!r})", action, (size,))
+        return np.minimum(np.maximum(array, -1.0), 1.0)
 
     def _targets(self, action: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
         """Joint targets (7,) and gripper opening (m) for an action of the env's ``action_type``."""
@@ -535,48 +557,41 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.robot.reset(NEUTRAL_JOINTS)
 
     def _simulate(self) -> None:
-        """One control step of physics with the robot's commands set: the button's spring, its
-        hard stop (checked after every physics step, 2 us each), the clock."""
-        self.scene.apply_spring()
-        self.sim.step(self.scene.enforce_stop)
+        """One control step of physics with the robot's commands set (the button's spring is set
+        at reset; its hard stop is checked after every physics step by the simulation), the
+        clock."""
+        self.sim.step()
         self._n_steps += 1
 
     def _read_state(self) -> _State:
         """The simulator's state that observation and evaluation need, read once per step."""
-        q, qd = self.robot.joint_states()
+        q, qd, gripper = self.robot.state()
+        ee = self.kinematics.forward_kinematics(q)
         cup_pos, cup_quat = self.scene.cup_pose()
-        return _State(
-            q, qd, self.robot.gripper_opening(), cup_pos, cup_quat, self.scene.button_travel()
-        )
+        return _State(q, qd, gripper, ee, cup_pos, cup_quat, self.scene.button_travel())
 
     def _get_obs(self, state: _State | None = None) -> NDArray[np.float32]:
         state = self._read_state() if state is None else state
-        q, cup_pos = state.q, state.cup_pos
         layout = self.scene.layout
-        observed = {
-            "cup_pos": cup_pos + self._bias["cup"],
-            "cup_init_pos": self._cup_init_pos + self._bias["cup"],
-            "machine_pos": layout.machine_pos + self._bias["machine"],
-        }
+        cup_bias = self._bias["cup"]
+        obs = np.empty(OBS_DIM)  # filled part by part (OBS_SLICES), then clipped to the bounds
+        obs[_TIME] = self._n_steps * CONTROL_DT
+        obs[_JOINT_POS] = state.q
+        obs[_JOINT_VEL] = state.qd
+        obs[_GRIPPER] = state.gripper
+        obs[_EE_POS] = state.ee
+        obs[_CUP_POS] = state.cup_pos + cup_bias
+        obs[_CUP_QUAT] = state.cup_quat
+        obs[_CUP_INIT_POS] = self._cup_init_pos + cup_bias
+        obs[_MACHINE_POS] = layout.machine_pos + self._bias["machine"]
+        obs[_MACHINE_YAW] = layout.machine_yaw
+        obs[_BUTTON_TRAVEL] = state.travel
         if self.obs_noise > 0.0:
             for name in PERTURBED_OBS:
-                observed[name] = observed[name] + self.np_random.normal(0.0, self.obs_noise, 3)
-        obs = np.concatenate(
-            [
-                [self._n_steps * CONTROL_DT],
-                q,
-                state.qd,
-                [state.gripper],
-                self.kinematics.forward_kinematics(q),
-                observed["cup_pos"],
-                state.cup_quat,
-                observed["cup_init_pos"],
-                observed["machine_pos"],
-                [layout.machine_yaw],
-                [state.travel],
-            ]
-        )
-        return np.clip(obs, OBS_LOW, OBS_HIGH).astype(np.float32)
+                obs[OBS_SLICES[name]] += self.np_random.normal(0.0, self.obs_noise, 3)
+        np.maximum(obs, _OBS_LOW64, out=obs)
+        np.minimum(obs, _OBS_HIGH64, out=obs)
+        return obs.astype(np.float32)
 
     def _evaluate(self, state: _State | None = None) -> tuple[dict[str, Any], bool]:
         """Stage flags, reward terms and whether the episode failed, from the simulator's state."""
@@ -589,18 +604,16 @@ class CoffeeEnv(gym.Env, EzPickle):
         # Grasped (latched): the cup is off the table between both fingers.
         if held and not scene.cup_on_table() and cup_pos[2] > TABLE_TOP_Z + 0.005:
             self._grasped = True
-        place_pos = scene.place_pos
-        offset = cup_pos - place_pos
-        cup_lin_vel, cup_ang_vel = self.sim.get_base_velocity("cup")
+        offset = cup_pos - scene.place_pos
+        # At rest (speeds read only when the pose qualifies: the velocity query changes nothing).
         placed = bool(
             tilt < CUP_UPRIGHT_TILT
             and np.hypot(offset[0], offset[1]) < PLACE_TOLERANCE
             and abs(offset[2]) < 0.01
-            and np.linalg.norm(cup_lin_vel) < CUP_REST_SPEED
-            and np.linalg.norm(cup_ang_vel) < CUP_REST_ANGULAR_SPEED
             and not touched
+            and self._cup_at_rest()
         )
-        ee = self.kinematics.forward_kinematics(state.q)
+        ee = state.ee
         travel = state.travel
         if travel < BUTTON_REST_TRAVEL:
             self._press_origin = ee
@@ -643,8 +656,15 @@ class CoffeeEnv(gym.Env, EzPickle):
             "stage": int(stage),
             "layout": dict(self._layout_info),
         }
-        info.update({f"reward_{name}": float(value) for name, value in terms.items()})
+        for key, value in zip(_REWARD_KEYS, terms.values(), strict=True):
+            info[key] = float(value)
         return info, failed
+
+    def _cup_at_rest(self) -> bool:
+        lin, ang = self.sim.get_base_velocity("cup")
+        return bool(
+            np.linalg.norm(lin) < CUP_REST_SPEED and np.linalg.norm(ang) < CUP_REST_ANGULAR_SPEED
+        )
 
     def _pushed_along_axis(self, ee: NDArray[np.float64]) -> bool:
         """Whether the grasp point moved along the button's axis since the button was at rest:

@@ -45,6 +45,8 @@ ARM_JOINTS = (0, 1, 2, 3, 4, 5, 6)
 FINGER_JOINTS = (9, 10)
 FINGER_LINKS = (9, 10)
 EE_LINK = 11
+#: Arm and finger joints, read in one query (:meth:`Panda.state`).
+_STATE_JOINTS = (*ARM_JOINTS, *FINGER_JOINTS)
 #: Start posture (rad), gripper pointing down in front of the robot.
 NEUTRAL_JOINTS = np.array([0.0, -0.6, 0.0, -2.4, 0.0, 1.85, 0.785])
 #: Joint torque limits (N m) of the Panda arm and force limit (N) per finger.
@@ -136,11 +138,17 @@ class Panda:
         self, q: NDArray[np.float64], action: NDArray[np.float64]
     ) -> NDArray[np.float64]:
         """Joint targets (7,) of a joint-mode action (8,) in [-1, 1] from measured joints ``q``."""
-        return np.clip(q + action[:7] * MAX_JOINT_STEP, self.joint_lower, self.joint_upper)
+        target = q + action[:7] * MAX_JOINT_STEP
+        return np.minimum(np.maximum(target, self.joint_lower), self.joint_upper)
 
     def joint_states(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Arm joint positions (7,) and velocities (7,)."""
         return self.sim.get_joint_states(self.name, ARM_JOINTS)
+
+    def state(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+        """Arm joint positions (7,), velocities (7,) and the gripper opening (m), in one query."""
+        pos, vel = self.sim.get_joint_states(self.name, _STATE_JOINTS)
+        return pos[:7], vel[:7], float(pos[7] + pos[8])
 
     def gripper_opening(self) -> float:
         """Distance between the fingers (m)."""

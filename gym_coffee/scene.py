@@ -20,6 +20,7 @@ never starts under or next to the machine.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -274,6 +275,10 @@ class CoffeeScene:
                 use_fixed_base=True,
                 self_collision=True,  # the button's hard stop against the front panel
             )
+        # The button's hard stop (see :meth:`Simulation.set_joint_stop`): the button's cap also
+        # collides with the front panel after 8 mm, but a fast strike still pushed it up to 10 mm
+        # into the (soft) contact.
+        sim.set_joint_stop("machine", 0, BUTTON_MAX_TRAVEL)
         if "cup" not in sim.bodies:
             sim.load_urdf("cup", "cup.urdf", self.layout.cup_pos)
 
@@ -296,17 +301,9 @@ class CoffeeScene:
         sim.reset_joint_states("machine", [0], [0.0])  # the button, at rest
         self.apply_spring()
 
-    def enforce_stop(self) -> None:
-        """The button's hard stop: travel beyond ``BUTTON_MAX_TRAVEL`` is set back to it, at rest.
-
-        Called after every physics step. The button's cap also collides with the front panel
-        after 8 mm, but a fast strike still pushed it up to 10 mm into the (soft) contact.
-        """
-        if self.sim.joint_position("machine", 0) > BUTTON_MAX_TRAVEL:
-            self.sim.reset_joint_states("machine", [0], [BUTTON_MAX_TRAVEL])
-
     def apply_spring(self) -> None:
-        """The button's return spring: a weak position motor towards travel 0."""
+        """The button's return spring: a weak position motor towards travel 0 (set at every reset;
+        PyBullet keeps a motor's settings, also through the stop's joint resets)."""
         self.sim.control_joints(
             "machine", [0], [0.0], [BUTTON_SPRING_FORCE], [0.2], position_gain=0.1
         )
@@ -329,11 +326,11 @@ class CoffeeScene:
         """Angle (rad) between the cup's axis and the vertical."""
         x, y, _, _ = quat
         # z component of the rotated z axis: 1 - 2 (x^2 + y^2)
-        return float(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
+        return math.acos(min(max(1.0 - 2.0 * float(x * x + y * y), -1.0), 1.0))
 
     def button_travel(self) -> float:
-        pos, _ = self.sim.get_joint_states("machine", [0])
-        return float(max(pos[0], 0.0))
+        """How far the button is pushed in (m, >= 0)."""
+        return max(self.sim.joint_position("machine", 0), 0.0)
 
     def robot_cup_contacts(self) -> tuple[bool, bool, bool]:
         """Whether the left finger, the right finger and any link of the robot touch the cup

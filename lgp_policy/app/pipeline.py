@@ -68,6 +68,7 @@ def run_pipeline(
     policy_kwargs: dict[str, Any] | None = None,
     progress: bool = True,
     force: bool = False,
+    env_id: str | None = None,
 ) -> dict[str, Any]:
     """Record, fit, evaluate, plot; write everything into ``out``; return ``results.json``.
 
@@ -82,9 +83,13 @@ def run_pipeline(
         progress: progress bars.
         force: replace files of an earlier run (:data:`RUN_FILES`) in ``out``; without it they
             are an error, raised before any work.
+        env_id: the task: a registered id or a level name of ``gym_coffee.LEVELS`` (default
+            ``gym_coffee.ENV_ID``, the easy level); demonstrations and evaluation use it, and
+            ``results.json`` records it.
 
     Raises:
         FileExistsError: ``out`` holds a file of :data:`RUN_FILES` and ``force`` is false.
+        ValueError: ``env_id`` is neither a level name nor a registered id.
     """
     import gymnasium as gym
     from threadpoolctl import threadpool_limits
@@ -97,6 +102,15 @@ def run_pipeline(
     )
     from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
+    if env_id is None:
+        env_id = gym_coffee.ENV_ID
+    elif isinstance(env_id, str):
+        env_id = gym_coffee.LEVELS.get(env_id, env_id)
+    if not isinstance(env_id, str) or env_id not in gym.registry:
+        raise ValueError(
+            f"env_id must be a level of gym_coffee.LEVELS {sorted(gym_coffee.LEVELS)} or a "
+            f"registered id, got {env_id!r}"
+        )
     out = Path(out)
     present = [n for n in RUN_FILES if (out / n).exists()]
     if present and not force:
@@ -109,6 +123,7 @@ def run_pipeline(
     stages = [(n, what) for n, what in stages if (n != "video" or video)]
     results: dict[str, Any] = {
         "status": "running",
+        "env_id": env_id,
         "stages": [n for n, _ in stages],
         "done": [],
         "timings": {},
@@ -141,7 +156,7 @@ def run_pipeline(
     t0, cpu0 = time.perf_counter(), _cpu_seconds()
     with threadpool_limits(limits=1, user_api="blas"):
         with stage("record", f" ({n_demos}, seeds {seed}..{seed + n_demos - 1})"):
-            env = gym.make(gym_coffee.ENV_ID)
+            env = gym.make(env_id)
             try:
                 demos = gym_coffee.collect_demonstrations(
                     env, n=n_demos, seed=seed, progress=progress
@@ -177,6 +192,7 @@ def run_pipeline(
                 seed=seed,
                 workers=workers,
                 progress=progress,
+                env_id=env_id,
                 keep_first=True,
                 render_first=video,
             )

@@ -11,6 +11,7 @@ from gym_coffee.env import OBS_DIM, OBS_SLICES, REWARD_TERMS, CoffeeEnv, object_
 from gym_coffee.robot import GRIPPER_MAX_OPENING
 from gym_coffee.scene import (
     BUTTON_MAX_TRAVEL,
+    BUTTON_REST_TRAVEL,
     CUP_REGION_X,
     CUP_REGION_Y,
     MACHINE_REGION_X,
@@ -274,3 +275,19 @@ def test_cup_still_moving_or_tilted_on_the_tray_is_not_placed(env):
     tilted = (np.sin(half), 0.0, 0.0, np.cos(half))
     env.sim.set_base_pose("cup", place + np.array([0, 0, 0.004]), tilted)
     assert not env._evaluate()[0]["cup_placed"]
+
+
+def test_button_past_its_stop_is_set_back_and_its_spring_returns_it(env):
+    """The stop (enforced after every physics step) and the spring (set once per reset) hold in
+    every episode, also after a reset that reused the world."""
+    for seed in (0, 1):
+        env.reset(seed=seed)
+        env.sim.p.resetJointState(env.sim.bodies["machine"], 0, BUTTON_MAX_TRAVEL + 0.002, 0.0)
+        hold(env, 1)
+        travels = [env.scene.button_travel()]
+        assert travels[0] <= BUTTON_MAX_TRAVEL
+        for _ in range(12):
+            hold(env, 1)
+            travels.append(env.scene.button_travel())
+        assert travels[-1] < BUTTON_REST_TRAVEL  # pushed back out by the spring
+        assert max(travels[1:]) <= travels[0]

@@ -10,6 +10,7 @@ import pytest
 
 pytest.importorskip("gym_coffee.teacher")
 
+import gym_coffee
 from lgp_policy import rollout
 from lgp_policy.app import backends, evaluation, pipeline, plots
 from lgp_policy.app.cli import main
@@ -84,11 +85,20 @@ def test_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
             video=False,
             policy_kwargs={"model": "empirical"},
             progress=False,
+            env_id="hard",
         )
     results = json.loads((out / "results.json").read_text())
+    assert results["env_id"] == gym_coffee.LEVELS["hard"]  # the level, recorded and evaluated
     assert results["status"] == "interrupted" and results["interrupted_in"] == "plots"
     assert results["done"] == ["record", "fit", "evaluate"]
     assert results["evaluation"]["n_episodes"] == 1
     assert (out / "policy.npz").exists() and not (out / "rollout.gif").exists()
     with pytest.raises(FileExistsError, match="force"):  # a second run never mixes into it
         pipeline.run_pipeline(out, n_demos=1, n_episodes=1, progress=False)
+
+
+@pytest.mark.parametrize("env_id", ["medium", "CartPole-v9", 3])
+def test_run_refuses_an_unknown_task_before_any_work(tmp_path, env_id):
+    with pytest.raises(ValueError, match="env_id"):
+        pipeline.run_pipeline(tmp_path / "run", n_demos=1, n_episodes=1, env_id=env_id)
+    assert not (tmp_path / "run").exists()
