@@ -384,41 +384,42 @@ class GPDemonstrationPolicy:
 
     Args (keyword-only after ``robot`` and ``adapter``):
 
-    =============== ===================================================================
-    robot           kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
-    adapter         how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
-                    default the gym-coffee adapter
-    n_steps         ``T``, resampled points per demonstration (encoding), >= 2
-    n_grid          points of the precomputed phase table used by ``predict``, >= 2
-    model           encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``, ``empirical``
-    combine         ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
-                    the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
-    frames          frames to use (default: all in the demonstrations); ``()`` = state only
-    alpha           null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
-    null_space_std  ``None``: a frame's null-space information = the joint estimate's; or a std
+    ================ ===================================================================
+    robot            kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
+    adapter          how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
+                     default the gym-coffee adapter
+    n_steps          ``T``, resampled points per demonstration (encoding), >= 2
+    n_grid           points of the precomputed phase table used by ``predict``, >= 2
+    model            encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``,
+                     ``empirical``
+    combine          ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
+                     the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
+    frames           frames to use (default: all in the demonstrations); ``()`` = state only
+    alpha            null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
+    null_space_std   ``None``: a frame's null-space information = the joint estimate's; or a std
     posture_distance rad; demonstrations of a redundant robot whose aligned joint trajectories
-                    are further apart than this (RMS, average linkage) move in different postures
-                    (e.g. mirrored arm configurations): the joint-space GPs are fitted per
-                    posture cluster and each step uses the cluster of the demonstration whose
-                    layout (the frames' poses) is nearest the current one; ``None``: one joint
-                    model of all demonstrations (the paper)
-    lookahead       control steps ahead at which the GPs are read (compensates tracking lag)
-    max_joint_step  largest change of a state coordinate per step; default the action map's
-    std_scale       per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
-    align           ``"gripper"``: align the demonstrations in time on the gripper command's
-                    closing/opening events before encoding; ``None``: plain normalised time
-    approach_offset ``"auto"`` (0.1 m for a robot with a hand orientation, else ``None``), a
-                    distance (m) of a second task point behind the grasp point along the hand's
-                    approach axis (task vector p = 6), or ``None``: position only (the paper)
-    frame_noise     std (m) of the observed frame positions for the online filter; 0 = trust
-                    every observation
-    max_wait        s; longest time per episode the phase waits (for the hand to reach the
-                    target before a gripper event, and for a demonstrated event); 0 = clock only
-    reach_tolerance m; before a demonstrated gripper event the phase waits until the grasp point
-                    is this close (or within 3 predicted std) to the target of the tightest frame
-                    at that event
-    encoder_kwargs  extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
-    =============== ===================================================================
+                     are further apart than this (RMS, average linkage) move in different postures
+                     (e.g. mirrored arm configurations): the joint-space GPs are fitted per
+                     posture cluster and each step uses the cluster of the demonstration whose
+                     layout (the frames' poses) is nearest the current one; ``None``: one joint
+                     model of all demonstrations (the paper)
+    lookahead        control steps ahead at which the GPs are read (compensates tracking lag)
+    max_joint_step   largest change of a state coordinate per step; default the action map's
+    std_scale        per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
+    align            ``"gripper"``: align the demonstrations in time on the gripper command's
+                     closing/opening events before encoding; ``None``: plain normalised time
+    approach_offset  ``"auto"`` (0.1 m for a robot with a hand orientation, else ``None``), a
+                     distance (m) of a second task point behind the grasp point along the hand's
+                     approach axis (task vector p = 6), or ``None``: position only (the paper)
+    frame_noise      std (m) of the observed frame positions for the online filter; 0 = trust
+                     every observation
+    max_wait         s; longest time per episode the phase waits (for the hand to reach the
+                     target before a gripper event, and for a demonstrated event); 0 = clock only
+    reach_tolerance  m; before a demonstrated gripper event the phase waits until the grasp point
+                     is this close (or within 3 predicted std) to the target of the tightest frame
+                     at that event
+    encoder_kwargs   extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
+    ================ ===================================================================
 
     Attributes (after ``fit`` or ``load``):
         phase_grid_: ``(n_grid,)``; ``mean_`` / ``std_``: per frame, ``(n_grid, d)`` tables.
@@ -433,7 +434,8 @@ class GPDemonstrationPolicy:
             posture: the joint model of all demonstrations is used everywhere).
         layout_features_: ``(n_demos, F)`` the demonstrations' layouts (:func:`layout_features`
             of the frames' initial poses), or ``None``.
-        posture_mean_, posture_std_: per posture cluster, ``(n_grid, k)`` joint-space tables.
+        posture_mean_, posture_std_: per posture cluster, ``(n_grid, d)`` joint-frame tables (the
+            state from the cluster, the gripper from all demonstrations).
         encoder_: the fitted encoder (only after ``fit``; not saved).
     """
 
