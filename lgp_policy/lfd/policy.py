@@ -67,7 +67,14 @@ from numpy.typing import ArrayLike, NDArray
 from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, read_npz
 from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
-from lgp_policy.lfd.encoding import JOINT_FRAME, DemonstrationEncoder, intervals_report, phase_of
+from lgp_policy.lfd.encoding import (
+    JOINT_FRAME,
+    MIN_STD,
+    DemonstrationEncoder,
+    intervals_report,
+    new_demonstration_scale,
+    phase_of,
+)
 from lgp_policy.lfd.reproduction import (
     DEFAULT_ALPHA,
     DEFAULT_DAMPING,
@@ -86,12 +93,14 @@ __all__ = [
     "PolicyFileError",
     "PolicyState",
     "hand_points",
+    "layout_features",
+    "posture_clusters",
 ]
 
 FORMAT_NAME = "lgp_policy.gp_demonstration_policy"
 """``format`` and ``kind`` of the file's JSON metadata (``residual.load_any_policy`` keys on it)."""
-SCHEMA_VERSION = 2
-_READABLE_VERSIONS = (1, 2)
+SCHEMA_VERSION = 3
+_READABLE_VERSIONS = (1, 2, 3)
 MODELS = ("local", "heteroscedastic", "exact", "empirical")
 #: Bounds on numbers read from files or given to the constructor.
 MAX_GRID = 100_000
@@ -102,6 +111,13 @@ MAX_CONTROL_DT = 60.0
 #: averaging window of about this many steps) and innovation gate (std) for a jump.
 FILTER_WINDOW = 25.0
 JUMP_GATE = 4.0
+#: Default ``posture_distance`` (rad): aligned joint trajectories further apart than this (RMS over
+#: phase and joints, average linkage) are different postures. Measured on the coffee teacher: one
+#: posture family 0.06-0.56 rad apart, the two mirrored families 0.97-1.31 rad.
+DEFAULT_POSTURE_DISTANCE = 0.75
+#: m per unit of ``|R_1 - R_2|_F``: how a frame's rotation counts against its position when the
+#: layouts of two episodes are compared (a half turn about one axis counts 0.28 m).
+ROTATION_LENGTH = 0.1
 
 
 class PolicyFileError(FileFormatError):
@@ -325,40 +341,100 @@ def _event_phases(tr: Trajectory, phase: NDArray[np.float64]) -> dict[str, float
     return out
 
 
+def posture_clusters(joints: ArrayLike, distance: float) -> NDArray[np.intp]:
+    """Group demonstrations by the posture the robot moved in.
+
+    Args:
+        joints: ``(n_demos, T, k)`` the robot states of the demonstrations, resampled on a common
+            (aligned) phase grid.
+        distance: demonstrations whose trajectories are further apart than this (RMS over phase
+            and coordinates, average linkage) are in different clusters.
+
+    Returns:
+        ``(n_demos,)`` cluster labels ``0, 1, ...`` numbered in order of first appearance (the
+        first demonstration is in cluster 0); all zeros for one demonstration.
+    """
+    data = np.asarray(joints, dtype=float)
+    n = data.shape[0]
+    if n < 2:
+        return np.zeros(n, dtype=np.intp)
+    from scipy.cluster.hierarchy import fcluster, linkage
+    from scipy.spatial.distance import squareform
+
+    diff = data[:, None] - data[None]
+    dist = np.sqrt(np.mean(diff * diff, axis=(2, 3)))
+    tree = linkage(squareform(dist, checks=False), method="average")
+    raw = fcluster(tree, t=distance, criterion="distance")
+    order = {c: i for i, c in enumerate(dict.fromkeys(raw.tolist()))}
+    return np.array([order[c] for c in raw.tolist()], dtype=np.intp)
+
+
+def layout_features(
+    frames: Mapping[str, tuple[ArrayLike, ArrayLike]], names: Sequence[str]
+) -> NDArray[np.float64]:
+    """The task parameters of a batch of layouts as one vector per row, for nearest-layout search.
+
+    Per frame (in the order of ``names``), the position ``(n, d)`` and ``ROTATION_LENGTH`` times
+    the rotation matrix's entries ``(n, d d)``, so that the Euclidean distance between two rows is
+    ``sum_m |o_1 - o_2|^2 + ROTATION_LENGTH^2 |R_1 - R_2|_F^2`` under the square root.
+
+    Args:
+        frames: ``{name: (position (n, d), rotation (n, d, d))}``.
+        names: the frames to use.
+
+    Returns:
+        ``(n, F)`` with ``F = len(names) (d + d^2)``.
+    """
+    cols = []
+    for name in names:
+        pos, rot = frames[name]
+        p = np.asarray(pos, dtype=float)
+        n = p.shape[0]
+        cols += [p, ROTATION_LENGTH * np.asarray(rot, dtype=float).reshape(n, -1)]
+    return np.concatenate(cols, axis=1)
+
+
 class GPDemonstrationPolicy:
     """Closed-loop reproduction of demonstrations with local heteroscedastic GPs (Sec. III).
 
     Args (keyword-only after ``robot`` and ``adapter``):
 
-    =============== ===================================================================
-    robot           kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
-    adapter         how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
-                    default the gym-coffee adapter
-    n_steps         ``T``, resampled points per demonstration (encoding), >= 2
-    n_grid          points of the precomputed phase table used by ``predict``, >= 2
-    model           encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``, ``empirical``
-    combine         ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
-                    the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
-    frames          frames to use (default: all in the demonstrations); ``()`` = state only
-    alpha           null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
-    null_space_std  ``None``: a frame's null-space information = the joint estimate's; or a std
-    lookahead       control steps ahead at which the GPs are read (compensates tracking lag)
-    max_joint_step  largest change of a state coordinate per step; default the action map's
-    std_scale       per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
-    align           ``"gripper"``: align the demonstrations in time on the gripper command's
-                    closing/opening events before encoding; ``None``: plain normalised time
-    approach_offset ``"auto"`` (0.1 m for a robot with a hand orientation, else ``None``), a
-                    distance (m) of a second task point behind the grasp point along the hand's
-                    approach axis (task vector p = 6), or ``None``: position only (the paper)
-    frame_noise     std (m) of the observed frame positions for the online filter; 0 = trust
-                    every observation
-    max_wait        s; longest time per episode the phase waits (for the hand to reach the
-                    target before a gripper event, and for a demonstrated event); 0 = clock only
-    reach_tolerance m; before a demonstrated gripper event the phase waits until the grasp point
-                    is this close (or within 3 predicted std) to the target of the tightest frame
-                    at that event
-    encoder_kwargs  extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
-    =============== ===================================================================
+    ================ ===================================================================
+    robot            kinematics (``lgp_policy.lfd.robots.RobotModel``); default ``adapter.robot``
+    adapter          how observations are read (``lgp_policy.lfd.adapters.ObservationAdapter``);
+                     default the gym-coffee adapter
+    n_steps          ``T``, resampled points per demonstration (encoding), >= 2
+    n_grid           points of the precomputed phase table used by ``predict``, >= 2
+    model            encoder model: ``local`` (paper), ``heteroscedastic``, ``exact``,
+                     ``empirical``
+    combine          ``LocalGP`` combination (``lgp_policy.gp.local.COMBINE_RULES``; ``product`` is
+                     the paper's Eqs. 8-9); default the GP layer's ``DEFAULT_COMBINE``
+    frames           frames to use (default: all in the demonstrations); ``()`` = state only
+    alpha            null-space weight of Algorithm 3 (0.5 in the paper), in [0, 1]
+    null_space_std   ``None``: a frame's null-space information = the joint estimate's; or a std
+    posture_distance rad; demonstrations of a redundant robot whose aligned joint trajectories
+                     are further apart than this (RMS, average linkage) move in different postures
+                     (e.g. mirrored arm configurations): the joint-space GPs are fitted per
+                     posture cluster and each step uses the cluster of the demonstration whose
+                     layout (the frames' poses) is nearest the current one; ``None``: one joint
+                     model of all demonstrations (the paper)
+    lookahead        control steps ahead at which the GPs are read (compensates tracking lag)
+    max_joint_step   largest change of a state coordinate per step; default the action map's
+    std_scale        per-frame multiplier of the predicted std, e.g. ``{"cup": 0.5}``
+    align            ``"gripper"``: align the demonstrations in time on the gripper command's
+                     closing/opening events before encoding; ``None``: plain normalised time
+    approach_offset  ``"auto"`` (0.1 m for a robot with a hand orientation, else ``None``), a
+                     distance (m) of a second task point behind the grasp point along the hand's
+                     approach axis (task vector p = 6), or ``None``: position only (the paper)
+    frame_noise      std (m) of the observed frame positions for the online filter; 0 = trust
+                     every observation
+    max_wait         s; longest time per episode the phase waits (for the hand to reach the
+                     target before a gripper event, and for a demonstrated event); 0 = clock only
+    reach_tolerance  m; before a demonstrated gripper event the phase waits until the grasp point
+                     is this close (or within 3 predicted std) to the target of the tightest frame
+                     at that event
+    encoder_kwargs   extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
+    ================ ===================================================================
 
     Attributes (after ``fit`` or ``load``):
         phase_grid_: ``(n_grid,)``; ``mean_`` / ``std_``: per frame, ``(n_grid, d)`` tables.
@@ -369,6 +445,12 @@ class GPDemonstrationPolicy:
         landmarks_: ``[(phase, frame), ...]``: the aligned gripper events and the frame that is
             tightest at each (where the phase waits for the hand to arrive).
         constraints_: the constraint report (see :meth:`constraint_report`).
+        posture_labels_: ``(n_demos,)`` posture cluster of each demonstration, or ``None`` (one
+            posture: the joint model of all demonstrations is used everywhere).
+        layout_features_: ``(n_demos, F)`` the demonstrations' layouts (:func:`layout_features`
+            of the frames' initial poses), or ``None``.
+        posture_mean_, posture_std_: per posture cluster, ``(n_grid, d)`` joint-frame tables (the
+            state from the cluster, the gripper from all demonstrations).
         encoder_: the fitted encoder (only after ``fit``; not saved).
     """
 
@@ -384,6 +466,7 @@ class GPDemonstrationPolicy:
         frames: Sequence[str] | None = None,
         alpha: float = DEFAULT_ALPHA,
         null_space_std: float | None = None,
+        posture_distance: float | None = DEFAULT_POSTURE_DISTANCE,
         lookahead: float = 1.0,
         max_joint_step: float | None = None,
         std_scale: Mapping[str, float] | None = None,
@@ -411,6 +494,11 @@ class GPDemonstrationPolicy:
         self.alpha = _finite("alpha", alpha, 0.0, 1.0, low_open=False)
         self.null_space_std = (
             None if null_space_std is None else _finite("null_space_std", null_space_std, 0.0, 1e3)
+        )
+        self.posture_distance = (
+            None
+            if posture_distance is None
+            else _finite("posture_distance", posture_distance, 0.0, 1e3)
         )
         self.lookahead = _finite("lookahead", lookahead, 0.0, 100.0, low_open=False)
         self.max_joint_step = (
@@ -442,6 +530,7 @@ class GPDemonstrationPolicy:
             "frames": None if self.frames is None else list(self.frames),
             "alpha": self.alpha,
             "null_space_std": self.null_space_std,
+            "posture_distance": self.posture_distance,
             "lookahead": self.lookahead,
             "max_joint_step": self.max_joint_step,
             "std_scale": None if self.std_scale is None else dict(self.std_scale),
@@ -577,6 +666,7 @@ class GPDemonstrationPolicy:
         self.mean_, self.std_ = {}, {}
         for name in self.frame_names_:
             self.mean_[name], self.std_[name] = encoder.predict(self.phase_grid_, name)
+        self._fit_postures(encoder, kwargs, trajs, names, say)
         self.duration_ = float(np.mean(encoder.durations_))
         self.control_dt_ = float(np.median([np.median(np.diff(t)) for t in times]))
         self.n_demos_ = len(trajs)
@@ -603,6 +693,103 @@ class GPDemonstrationPolicy:
         self.fit_time_ = _time.perf_counter() - start
         return self
 
+    def _fit_postures(
+        self,
+        encoder: DemonstrationEncoder,
+        kwargs: Mapping[str, Any],
+        trajs: TrajectorySet,
+        names: Sequence[str],
+        say: Callable[[str], None] | None,
+    ) -> None:
+        """Joint-space tables per posture cluster (``posture_distance``), or none.
+
+        Only for a redundant robot (more state coordinates than task-vector entries: the joint
+        estimate then chooses a posture in the null space, and the mean of two postures is one
+        the demonstrations never took) with object frames (their poses are the layout).
+
+        The clusters share their spread, as the components of a Gaussian mixture with a tied
+        covariance: a cluster's mean is the mean of its demonstrations' aligned joint
+        trajectories; the spread is the GP (the policy's encoder) of every demonstration's
+        deviation from its cluster's mean, corrected for the ``C`` estimated means
+        (``sqrt(n / (n - C))``) and, as the encoder does, turned into a prediction of a new
+        demonstration (Student t with ``n - C`` degrees of freedom, and ``sqrt(1 + 1 / n_c)`` for
+        the cluster mean's own uncertainty). A cluster of one demonstration thus borrows the
+        spread of the others; with no cluster of two, every cluster takes the spread of all
+        demonstrations (the weakest pull). The gripper columns stay those of all
+        demonstrations."""
+        self.posture_labels_: NDArray[np.intp] | None = None
+        self.layout_features_: NDArray[np.float64] | None = None
+        self.posture_mean_: list[NDArray[np.float64]] = []
+        self.posture_std_: list[NDArray[np.float64]] = []
+        robot = self.robot_
+        k = robot.n_joints
+        p = robot.dim * (2 if self.approach_offset_ is not None else 1)
+        if self.posture_distance is None or len(trajs) < 2 or not names or k <= p:
+            return
+        data = encoder.data_[JOINT_FRAME][:, :, :k]
+        labels = posture_clusters(data, self.posture_distance)
+        n, n_clusters = len(data), int(labels.max()) + 1
+        if n_clusters == 1:
+            return
+        grid = encoder.phase_
+        means = np.stack([data[labels == c].mean(axis=0) for c in range(n_clusters)])
+        tied = None
+        if n > n_clusters:
+            if say is not None:
+                say(f"encoding the joint frame's spread within {n_clusters} postures")
+            sub = DemonstrationEncoder(**{**kwargs, "calibrate": False})
+            sub.fit([grid] * n, list(data - means[labels]))
+            tied = sub.predict(self.phase_grid_, JOINT_FRAME)[1] * math.sqrt(n / (n - n_clusters))
+            if getattr(encoder, "calibrate", True):
+                tied = tied * new_demonstration_scale(n - n_clusters + 1)
+        for c in range(n_clusters):
+            n_c = int(np.sum(labels == c))
+            mean = np.stack([np.interp(self.phase_grid_, grid, col) for col in means[c].T], axis=1)
+            std = (
+                self.std_[JOINT_FRAME][:, :k]
+                if tied is None
+                else np.maximum(tied * math.sqrt(1.0 + 1.0 / n_c), MIN_STD)
+            )
+            # the gripper (and any other column after the state) from all demonstrations
+            self.posture_mean_.append(np.hstack([mean, self.mean_[JOINT_FRAME][:, k:]]))
+            self.posture_std_.append(np.hstack([std, self.std_[JOINT_FRAME][:, k:]]))
+        self.posture_labels_ = labels
+        initial = [tr.initial_frames() for tr in trajs]
+        self.layout_features_ = layout_features(
+            {
+                n: (np.stack([f[n][0] for f in initial]), np.stack([f[n][1] for f in initial]))
+                for n in names
+            },
+            names,
+        )
+
+    def _posture_of(self, state: PolicyState) -> NDArray[np.intp]:
+        """Per environment, the posture cluster of the demonstration whose layout is nearest the
+        frames' current (filtered) poses."""
+        feats = layout_features(
+            {n: (state.position[n], state.rotation[n]) for n in self.frame_names_[1:]},
+            self.frame_names_[1:],
+        )
+        diff = feats[:, None, :] - self.layout_features_[None]  # type: ignore[index]
+        nearest = np.argmin(np.einsum("ijk,ijk->ij", diff, diff), axis=1)
+        return self.posture_labels_[nearest]  # type: ignore[index]
+
+    def _joint_rows(
+        self, row: NDArray[np.float64], state: PolicyState
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The joint-space mean and variance ``(n, k)`` of each environment's posture cluster,
+        from the table rows ``row (n, D)``."""
+        labels = self._posture_of(state)
+        if labels.shape == (1,):
+            mcol, vcol = self._posture_cols[int(labels[0])]
+            return row[:, mcol], row[:, vcol]
+        d = self.posture_mean_[0].shape[1]
+        mean, var = np.empty((len(row), d)), np.empty((len(row), d))
+        for c, (mcol, vcol) in enumerate(self._posture_cols):
+            sel = labels == c
+            mean[sel], var[sel] = row[sel, mcol], row[sel, vcol]
+        return mean, var
+
     # ------------------------------------------------------------------ table
     def _build_table(self) -> None:
         """Stack the means and variances of all frames in one ``(n_grid, D)`` table."""
@@ -614,6 +801,12 @@ class GPDemonstrationPolicy:
             var = (self.std_[name] * scale.get(name, 1.0)) ** 2
             cols += [self.mean_[name], var]
             self._cols[name] = (slice(c, c + d), slice(c + d, c + 2 * d))
+            c += 2 * d
+        self._posture_cols = []
+        for mean, std in zip(self.posture_mean_, self.posture_std_, strict=True):
+            d = mean.shape[1]
+            cols += [mean, (std * scale.get(JOINT_FRAME, 1.0)) ** 2]
+            self._posture_cols.append((slice(c, c + d), slice(c + d, c + 2 * d)))
             c += 2 * d
         self._table = np.ascontiguousarray(np.hstack(cols))
         self._memory: PolicyState | None = None
@@ -941,7 +1134,10 @@ class GPDemonstrationPolicy:
         waiting = not math.isnan(aim[0]) if n == 1 else bool(np.any(~np.isnan(aim)))
         if waiting:  # waiting to reach a gripper event's target: aim at it
             row = self._rows(np.where(np.isnan(aim), s, aim))
-        joint_mean, joint_var = row[:, jm], row[:, jv]
+        if self.posture_labels_ is None:
+            joint_mean, joint_var = row[:, jm], row[:, jv]
+        else:  # the joint model of the posture the nearest demonstrated layout was shown in
+            joint_mean, joint_var = self._joint_rows(row, mem)
         one: int | slice = 0 if n == 1 else slice(None)  # one robot: unbatched arrays
         frames = None
         if x is not None and J is not None:
@@ -1103,6 +1299,9 @@ class GPDemonstrationPolicy:
             "event_phases": self.event_phases_,
             "landmarks": [[s_l, f] for s_l, f in self.landmarks_],
             "constraints": self.constraints_,
+            "posture_labels": (
+                None if self.posture_labels_ is None else [int(c) for c in self.posture_labels_]
+            ),
         }
         arrays: dict[str, NDArray[Any]] = {
             "metadata": np.array(json.dumps(metadata)),
@@ -1111,6 +1310,11 @@ class GPDemonstrationPolicy:
         for name in self.frame_names_:
             arrays[f"mean__{name}"] = self.mean_[name]
             arrays[f"std__{name}"] = self.std_[name]
+        if self.layout_features_ is not None:
+            arrays["layout_features"] = self.layout_features_
+        for c, (mean, std) in enumerate(zip(self.posture_mean_, self.posture_std_, strict=True)):
+            arrays[f"posture_mean__{c}"] = mean
+            arrays[f"posture_std__{c}"] = std
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_save_npz(path, arrays, force=overwrite)
         return path
@@ -1180,6 +1384,8 @@ class GPDemonstrationPolicy:
             raise PolicyFileError("'params' must be an object")
         if version == 1:
             params = {k: v for k, v in params.items() if k != "approach_offset"}
+        if version in (1, 2):  # before posture clusters: one joint model
+            params = {**params, "posture_distance": None}
         try:
             policy = cls(robot, adapter, **params)
         except (TypeError, ValueError) as exc:
@@ -1266,6 +1472,9 @@ class GPDemonstrationPolicy:
             for p in stage_phases
         ):
             raise PolicyFileError("'stage_phases' must be a list of {event: phase in [0, 1]}")
+        policy.posture_labels_, policy.layout_features_ = None, None
+        policy.posture_mean_, policy.posture_std_ = [], []
+        _read_postures(policy, meta, arrays, len(grid), k, len(names) - 1)
         policy.approach_offset_ = offset
         policy.phase_grid_ = grid.astype(float)
         policy.mean_, policy.std_ = mean, std
@@ -1287,11 +1496,77 @@ class GPDemonstrationPolicy:
         return f"GPDemonstrationPolicy(model={self.model!r}, alpha={self.alpha}{fitted})"
 
 
+def _read_postures(
+    policy: GPDemonstrationPolicy,
+    meta: Mapping[str, Any],
+    arrays: Mapping[str, NDArray[Any]],
+    n_grid: int,
+    width: int,
+    n_frames: int,
+) -> None:
+    """Check and set the posture clusters of a policy file (``posture_labels`` in the metadata,
+    ``layout_features`` and ``posture_mean__<c>`` / ``posture_std__<c>`` members)."""
+    labels = meta.get("posture_labels")
+    members = sorted(k for k in arrays if k.startswith("posture_") or k == "layout_features")
+    if labels is None:
+        if members:
+            raise PolicyFileError(f"members {members} without 'posture_labels' in the metadata")
+        return
+    if (
+        not isinstance(labels, list)
+        or len(labels) < 2
+        or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in labels)
+        or set(labels) != set(range(max(labels) + 1))
+        or max(labels) < 1
+    ):
+        raise PolicyFileError(
+            "'posture_labels' must list one cluster 0, 1, ... per demonstration, at least two "
+            "clusters, each used"
+        )
+    if policy.posture_distance is None:
+        raise PolicyFileError("the file has posture clusters but posture_distance is None")
+    n_clusters = max(labels) + 1
+    expected = {"layout_features"} | {
+        f"posture_{kind}__{c}" for c in range(n_clusters) for kind in ("mean", "std")
+    }
+    if set(members) != expected:
+        raise PolicyFileError(
+            f"posture members {members} do not match {n_clusters} clusters; expected "
+            f"{sorted(expected)}"
+        )
+    d = policy.robot_.dim
+    feats = np.asarray(arrays["layout_features"])
+    want = (len(labels), n_frames * (d + d * d))
+    if feats.dtype.kind != "f" or feats.shape != want or not np.all(np.isfinite(feats)):
+        raise PolicyFileError(
+            f"'layout_features' has shape {feats.shape} ({feats.dtype}), expected {want} finite "
+            f"floats"
+        )
+    for c in range(n_clusters):
+        for kind, store in (("mean", policy.posture_mean_), ("std", policy.posture_std_)):
+            key = f"posture_{kind}__{c}"
+            a = np.asarray(arrays[key])
+            if a.dtype.kind != "f" or a.shape != (n_grid, width):
+                raise PolicyFileError(
+                    f"{key!r} has shape {a.shape} ({a.dtype}), expected ({n_grid}, {width}) floats"
+                )
+            if not np.all(np.isfinite(a)) or np.any(np.abs(a) > 1e6):
+                raise PolicyFileError(f"{key!r} contains NaN, inf or values beyond 1e6")
+            if kind == "std" and np.any(a <= 0):
+                raise PolicyFileError(f"{key!r} must be positive")
+            store.append(a.astype(float))
+    policy.posture_labels_ = np.array(labels, dtype=np.intp)
+    policy.layout_features_ = feats.astype(float)
+
+
 _SCHEMA = {
     "metadata": MemberSpec(dtype="U", ndim=0, max_bytes=16 * 2**20),
     "phase_grid": MemberSpec(dtype="f", ndim=1, finite=True),
     "mean__*": MemberSpec(dtype="f", ndim=2, finite=True),
     "std__*": MemberSpec(dtype="f", ndim=2, finite=True),
+    "layout_features": MemberSpec(dtype="f", ndim=2, finite=True, required=False),
+    "posture_mean__*": MemberSpec(dtype="f", ndim=2, finite=True, required=False),
+    "posture_std__*": MemberSpec(dtype="f", ndim=2, finite=True, required=False),
 }
 MAX_MEMBER_BYTES = 64 * 2**20
 MAX_FILE_BYTES = 512 * 2**20

@@ -150,3 +150,14 @@ def test_one_observation_matches_the_batch_path(policy, ex, single_matches_batch
     for o, first in zip(rows, starts, strict=True):
         _a, state = policy.predict(o, state=state, episode_start=np.array([first]))
     single_matches_batch(policy, rows, starts)
+
+
+def test_a_point_robot_keeps_one_joint_model(policy, ex):
+    """Posture clusters are for a redundant arm's null space; a point robot's state trajectories
+    differ by the layout itself, so even a tiny posture_distance leaves one joint model."""
+    assert policy.posture_labels_ is None
+    demos = TrajectorySet([ex.record(i) for i in range(3)])
+    tight = GPDemonstrationPolicy(
+        adapter=ex.make_adapter(), n_steps=20, n_grid=50, posture_distance=1e-6
+    ).fit(demos)
+    assert tight.posture_labels_ is None and tight.posture_mean_ == []

@@ -297,3 +297,131 @@ def test_one_observation_matches_the_batch_path_on_a_rollout(policy, single_matc
             obs, *_ = env.step(action)
     env.close()
     single_matches_batch(policy, rows, starts)
+
+
+# ------------------------------------------------------------------ posture clusters (issue 11)
+_POSTURE = np.array([-0.2, 0.9, 0.0, -1.9, 1.4, 1.5, 1.2])
+_MIRROR = _POSTURE * np.array([-1, 1, -1, 1, -1, 1, -1]) + np.array([0, 0, 0, 0, 0, 0, 1.57])
+
+
+def _posture_demo(side: int, seed: int):
+    """A joint motion around the posture of the machine's side (mirrored for ``side = -1``),
+    with the layout mirrored too; the gripper closes and opens once (two alignment events)."""
+    from lgp_policy.lfd.adapters import rotation_from_angle
+    from lgp_policy.lfd.adapters.coffee import cup_rotation
+    from lgp_policy.lfd.demonstrations import Trajectory
+
+    rng = np.random.default_rng(seed)
+    n = 30
+    t = np.arange(n) * 0.04
+    base = _POSTURE if side > 0 else _MIRROR
+    wave = np.sin(np.linspace(0.0, np.pi, n))[:, None] * np.array([0.2, 0.1, 0, 0.2, 0, 0, 0.1])
+    state = base + wave * np.array([side, 1, side, 1, side, 1, side]) + rng.normal(0, 0.03, 7)
+    grip = np.where((np.arange(n) >= 10) & (np.arange(n) < 20), 0.0, 0.08)
+    cup = np.array([0.5, -0.15 * side, 0.0]) + rng.normal(0, 0.02, 3) * [1, 1, 0]
+    machine = np.array([0.45, 0.35 * side, 0.0]) + rng.normal(0, 0.02, 3) * [1, 1, 0]
+    yaw = np.array([-np.pi / 2 * side + rng.normal(0, 0.1)])
+    return Trajectory(
+        time=t,
+        state=state,
+        gripper=grip,
+        frames={
+            "cup": (cup, cup_rotation(cup[None], machine[None], yaw)[0]),
+            "machine": (machine, rotation_from_angle(yaw, 3)[0]),
+        },
+    )
+
+
+def _observation(tr, q=None):
+    """A coffee observation at the start of the demonstration ``tr``'s layout."""
+    obs = np.zeros(OBS_DIM)
+    obs[1:8] = tr.state[0] if q is None else q
+    obs[15] = 0.08
+    obs[16:19] = [0.3, 0.0, 0.5]  # the hand far from the cup: not held
+    cup, machine = tr.frames["cup"][0][0], tr.frames["machine"][0][0]
+    obs[19:22] = obs[26:29] = cup
+    obs[29:32] = machine
+    R = tr.frames["machine"][1][0]
+    obs[32] = np.arctan2(R[1, 0], R[0, 0])
+    return obs
+
+
+@pytest.fixture(scope="module")
+def postures():
+    from lgp_policy.lfd.demonstrations import TrajectorySet
+
+    sides = [1, 1, -1, 1, -1, 1]
+    demos = TrajectorySet([_posture_demo(s, i) for i, s in enumerate(sides)])
+    single = GPDemonstrationPolicy(n_steps=30, n_grid=59, posture_distance=None).fit(demos)
+    # n_grid = 59: every second point is one of the encoder's T = 30
+    return demos, GPDemonstrationPolicy(n_steps=30, n_grid=59).fit(demos), single
+
+
+def test_mirrored_postures_get_a_joint_model_each(postures):
+    _demos, policy, single = postures
+    np.testing.assert_array_equal(policy.posture_labels_, [0, 0, 1, 0, 1, 0])
+    assert policy.layout_features_.shape == (6, 2 * (3 + 9))
+    enc = policy.encoder_.data_["joint"][:, :, :7]
+    for c in (0, 1):  # the cluster's mean on the encoder's grid, the gripper of all demonstrations
+        mean = enc[policy.posture_labels_ == c].mean(axis=0)
+        np.testing.assert_allclose(policy.posture_mean_[c][::2, :7], mean, atol=1e-12)
+        np.testing.assert_array_equal(policy.posture_mean_[c][:, 7], policy.mean_["joint"][:, 7])
+        # the tied spread is far below the spread of the mixture where the postures differ
+        assert np.all(policy.posture_std_[c][:, 4] < 0.5 * policy.std_["joint"][:, 4])
+    # the same demonstrations without clusters: one joint model (the paper)
+    assert single.posture_labels_ is None and single.posture_mean_ == []
+
+
+def test_the_nearest_layout_chooses_the_posture(postures):
+    demos, policy, global_ = postures
+    for i, tr in enumerate(demos):
+        # the arm half-way between the postures: the clustered policy pulls towards the
+        # layout's posture (joint 5 flips sign with the side), the single model barely
+        q = 0.5 * (_POSTURE + _MIRROR)
+        obs = _observation(tr, q)
+        side = 1.0 if policy.posture_labels_[i] == 0 else -1.0
+        dq = policy.predict_distribution(obs, episode_start=[True]).joint_increment[0]
+        assert policy._posture_of(policy._memory)[0] == policy.posture_labels_[i]
+        dq_global = global_.predict_distribution(obs, episode_start=[True]).joint_increment[0]
+        assert side * dq[4] > 0.05
+        assert abs(dq_global[4]) < 0.5 * abs(dq[4])
+
+
+def test_posture_clusters_are_saved_and_checked(postures, tmp_path):
+    demos, policy, _ = postures
+    path = policy.save(tmp_path / "p.npz")
+    loaded = GPDemonstrationPolicy.load(path)
+    np.testing.assert_array_equal(loaded.posture_labels_, policy.posture_labels_)
+    obs = np.stack([_observation(tr) for tr in demos])
+    starts = np.ones(len(obs), bool)
+    np.testing.assert_array_equal(
+        loaded.predict(obs, episode_start=starts)[0], policy.predict(obs, episode_start=starts)[0]
+    )
+    bad = [
+        ({"posture_labels": [0, 0, 0, 0, 0, 0]}, {}, "posture_labels"),
+        ({"posture_labels": [0, 2, 2, 0, 2, 0]}, {}, "posture_labels"),
+        ({"posture_labels": [0, 1]}, {}, "layout_features"),
+        ({"posture_labels": None}, {}, "without 'posture_labels'"),
+        ({"params": {"posture_distance": None}}, {}, "posture_distance"),
+        ({"params": {"posture_distance": -1.0}}, {}, "posture_distance"),
+        ({}, {"posture_std__1": None}, "posture members"),
+        ({}, {"posture_mean__1": np.ones((59, 7))}, "posture_mean__1"),
+        ({}, {"posture_std__0": np.zeros((59, 8))}, "positive"),
+        ({}, {"layout_features": np.ones((6, 5))}, "layout_features"),
+    ]
+    for k, (meta, members, match) in enumerate(bad):
+        dst = _with_meta(path, tmp_path / f"m{k}.npz", **meta) if meta else path
+        dst = _rewrite(dst, tmp_path / f"b{k}.npz", **members)
+        with pytest.raises(PolicyFileError, match=match):
+            GPDemonstrationPolicy.load(dst)
+
+
+def test_files_before_posture_clusters_load_with_one_joint_model(policy, tmp_path):
+    good = policy.save(tmp_path / "good.npz")
+    with np.load(good, allow_pickle=False) as data:
+        meta = json.loads(str(data["metadata"]))
+    del meta["params"]["posture_distance"], meta["posture_labels"]
+    meta["schema_version"] = 2
+    old = _rewrite(good, tmp_path / "v2.npz", metadata=np.array(json.dumps(meta)))
+    loaded = GPDemonstrationPolicy.load(old)
+    assert loaded.posture_distance is None and loaded.posture_labels_ is None
