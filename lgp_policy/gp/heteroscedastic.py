@@ -12,9 +12,8 @@ GP (the z-process, Goldberg et al. 1997). Following Kersting et al.'s most-likel
 Step 2, default (``n_samples=None``): under the current model the residual ``y_i - mu_i`` has
 variance ``r_i - var_f(x_i)``, so ``e_i = (y_i - mu_i)^2 / (1 - var_f(x_i) / r_i)`` is an unbiased
 ``r(x_i) chi2_1`` draw. The ``m`` replicates at one input are averaged, and the log is corrected
-for the bias of the log of a ``chi2_nu / nu`` variable, ``psi(nu/2) - log(nu/2)`` (-1.27 for
-``nu = 1``). Where ``m > 1`` samples share an input the estimate is their scatter about their
-own mean, ``nu = m - 1`` (:func:`_replicate_scatter`). Without these two corrections ``r(x)`` comes out biased (measured on Goldberg's set:
+for the bias of the log of a ``chi2_m / m`` variable, ``psi(m/2) - log(m/2)`` (-1.27 for
+``m = 1``). Without these two corrections ``r(x)`` comes out biased (measured on Goldberg's set:
 about 1.4x too large when the posterior variance is added to the squared residual, about 3.6x too
 small without the log correction). ``n_samples=s`` uses Kersting et al.'s sample estimator
 verbatim, ``mean_j (y_i - t_ij)^2 / 2`` with ``t_ij`` drawn from the current predictive
@@ -100,25 +99,6 @@ def _log_mean_chi2_var(m: NDArray[np.float64]) -> NDArray[np.float64]:
     ``m = 1``, 0.64 for ``m = 4``). It is the z-process's observation noise, so that noise
     cannot collapse to zero (the failure of a learnt white-noise term)."""
     return scipy.special.polygamma(1, m / 2.0)
-
-
-def _replicate_scatter(
-    y: NDArray[np.float64], inverse: NDArray[np.int64], counts: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """``sum_j (y_j - ybar)^2`` over the replicates at every distinct input.
-
-    The noise estimate where several samples share an input (every phase of demonstrations
-    resampled to one grid). Residuals about the GP's mean instead assume that the neighbours
-    pin ``f`` (latent variance far below ``r / c``), true for white noise but not for
-    demonstrations, which deviate smoothly over long stretches: the mean of ``c``
-    demonstrations is then known only to ``r / c``, the residuals have ``c - 1`` degrees of
-    freedom, and the log-noise bias correction for ``c`` left ``r`` 0.7 nats too small for three
-    demonstrations (measured, ``docs/design-gp.md``). The scatter is ``r chi2_{c-1}`` whatever
-    the mean does.
-    """
-    m = counts.shape[0]
-    ybar = np.bincount(inverse, weights=y, minlength=m) / counts
-    return np.bincount(inverse, weights=(y - ybar[inverse]) ** 2, minlength=m)
 
 
 def default_noise_kernel(
@@ -282,10 +262,10 @@ def most_likely_em(
     if learn:
         fit_shared_hyperparameters(gps, random_state=rng, **opt)
     homoscedastic_kernel = gps[0].kernel_.clone()
-    groups = []  # the GP's own distinct inputs (its solve is on them): X, inverse, counts
+    groups = []  # the GP's own distinct inputs (its solve is on them): X, inverse, counts, bias
     for gp in gps:
         d = gp._data
-        groups.append((d.X, d.inverse, d.counts))
+        groups.append((d.X, d.inverse, d.counts, _log_mean_chi2_bias(d.counts)))
     log_r0 = float(np.clip(math.log(gps[0]._noise_level), lo, hi))
     log_r = [np.full(X.shape[0], log_r0) for X, _ in datasets]
     sig = signal_kernel(homoscedastic_kernel) if refit_kernel is None else refit_kernel.clone()
@@ -301,24 +281,19 @@ def most_likely_em(
     for _ in range(max_em_iter):
         n_iter += 1
         # Step 2: noise estimate at every training input from the posterior of f.
-        targets, target_vars = [], []
-        for gp, (X, y), (U, inverse, counts), lr in zip(gps, datasets, groups, log_r, strict=True):
+        targets = []
+        for gp, (X, y), (U, inverse, counts, bias), lr in zip(
+            gps, datasets, groups, log_r, strict=True
+        ):
             mu_u, var_u = gp._latent_at_training()  # at the distinct inputs, then per sample
             mu, var_f = mu_u[inverse, 0], var_u[inverse]
             if n_samples is None:
-                # A single sample: its squared residual over its expectation r - var_f
-                # (leverage-corrected), an unbiased r(x_i) chi2_1 draw. Replicates: their
-                # scatter about their own mean over c - 1, an r chi2_{c-1} / (c - 1) draw
-                # whatever f's posterior says (_replicate_scatter). Log-bias removed.
+                # Squared residual over its expectation r - var_f (leverage-corrected): an
+                # unbiased r(x_i) * chi2_1 draw; averaged over replicates, log-bias removed.
                 frac = np.maximum(1.0 - var_f * np.exp(-lr), MIN_RESIDUAL_FRACTION)
                 e = (y - mu) ** 2 / frac
                 e_u = np.bincount(inverse, weights=e, minlength=U.shape[0]) / counts
-                rep = counts > 1
-                dof = np.where(rep, counts - 1.0, 1.0)
-                if np.any(rep):
-                    e_u = np.where(rep, _replicate_scatter(y, inverse, counts) / dof, e_u)
-                z = np.log(np.maximum(e_u, 1e-300)) - _log_mean_chi2_bias(dof)
-                target_vars.append(_log_mean_chi2_var(dof))
+                z = np.log(np.maximum(e_u, 1e-300)) - bias
             else:
                 # Kersting et al.'s estimator: 0.5 (y_i - t_ij)^2, t_ij from the predictive
                 # distribution of the current GP (including its noise).
@@ -327,7 +302,6 @@ def most_likely_em(
                 e = np.mean(0.5 * (y[:, None] - t) ** 2, axis=1)
                 e_u = np.bincount(inverse, weights=e, minlength=U.shape[0]) / counts
                 z = np.log(np.maximum(e_u, 1e-300))
-                target_vars.append(_log_mean_chi2_var(counts))
             targets.append(np.clip(z, lo, hi))  # a zero residual means "at the floor"
         # Step 3: z-process G2 on the log noise, one shared constant mean.
         if noise_offset is None:
@@ -335,8 +309,8 @@ def most_likely_em(
         else:
             off = float(noise_offset)
         noise_gps = [
-            _fit_z(make, zk, g[0], z - off, v)
-            for g, z, v in zip(groups, targets, target_vars, strict=True)
+            _fit_z(make, zk, g[0], z - off, _log_mean_chi2_var(g[2]))
+            for g, z in zip(groups, targets, strict=True)
         ]
         if learn:
             fit_shared_hyperparameters(noise_gps, random_state=rng, **opt)
