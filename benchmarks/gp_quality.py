@@ -36,6 +36,10 @@ gain* is what the true noise model gains over the best constant noise on the sam
 (true ``f`` in both): the largest gain any heteroscedastic model can reach there (about 0.09
 nats on Goldberg's set, whose noise std only doubles over the input range).
 
+Part 3 (``--part coverage``), coverage of held-out demonstrations over many generated sets
+(``smooth_deviations``; not the sets above): separates the calibration mechanism from the
+sampling spread of a single set of 4-5 demonstrations.
+
 Usage::
 
     python benchmarks/gp_quality.py --quick    # a few output dimensions, 1 seed (~1-2 min)
@@ -45,6 +49,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 import warnings
 from collections.abc import Callable
@@ -104,6 +109,58 @@ def shapes(grid: str, n_demos: int = 5, n_steps: int = 150, seed: int = 0):
         Ts.append(t)
         Ys.append(np.column_stack([x, y]))
     return np.stack(Ts), np.stack(Ys)
+
+
+def smooth_deviations(seed: int, n_demos: int, grid: str, n_steps: int = 100):
+    """Calibration sets (not the benchmark's LOO sets): ``cos(3t)`` plus a smooth GP draw per
+    demonstration (length scale 0.15) of std ``0.02 + 0.3 sin^2(pi t)``; ``grid`` as
+    :func:`shapes`."""
+    rng = np.random.default_rng(1000 + seed)
+    Ts, Ys = [], []
+    for _ in range(n_demos):
+        if grid == "shared":
+            t = np.linspace(0.0, 1.0, n_steps)
+        else:
+            t = np.sort(np.r_[0.0, 1.0, rng.uniform(0.0, 1.0, n_steps - 2)])
+        K = np.exp(-0.5 * (t[:, None] - t[None, :]) ** 2 / 0.15**2) + 1e-8 * np.eye(n_steps)
+        sd = 0.02 + 0.3 * np.sin(np.pi * t) ** 2
+        Ts.append(t)
+        Ys.append(np.cos(3 * t) + sd * (np.linalg.cholesky(K) @ rng.standard_normal(n_steps)))
+    return np.stack(Ts), np.stack(Ys)
+
+
+def coverage_table(n_sets: int, n_steps: int) -> list[str]:
+    """95% coverage of held-out demonstrations over ``n_sets`` generated sets per row: its mean,
+    spread over sets, the share of sets inside [0.90, 0.97], and the mean with an extra factor
+    ``sqrt(1 + 1/n)`` (the variance of a mean of n training demonstrations)."""
+    lines = [
+        "| demonstrations | grid | mean coverage | sd over sets | min - max | "
+        "sets in [0.90, 0.97] | mean cov. with sqrt(1 + 1/n) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    enc = DemonstrationEncoder(n_steps=n_steps, model="local")
+    for n_demos in (4, 5):
+        for grid in ("shared", "own"):
+            cov, cov_n = [], []
+            for seed in range(n_sets):
+                T, Y = smooth_deviations(seed, n_demos, grid, n_steps)
+                per, per_n = [], []
+                for k in range(n_demos):
+                    keep = np.arange(n_demos) != k
+                    mean, std = fit_predict_gp(enc._make_model(), T[keep], Y[keep], T[k])
+                    std = std * new_demonstration_scale(n_demos - 1)
+                    err = np.abs(Y[k] - mean)
+                    per.append(np.mean(err <= 1.96 * std))
+                    per_n.append(np.mean(err <= 1.96 * std * np.sqrt(1 + 1 / (n_demos - 1))))
+                cov.append(np.mean(per))
+                cov_n.append(np.mean(per_n))
+            c = np.array(cov)
+            inside = np.mean((c >= 0.90) & (c <= 0.97))
+            lines.append(
+                f"| {n_demos} | {grid} | {c.mean():.3f} | {c.std():.3f} | "
+                f"{c.min():.3f} - {c.max():.3f} | {inside:.0%} | {np.mean(cov_n):.3f} |"
+            )
+    return lines
 
 
 # -------------------------------------------------------------------------- methods
@@ -239,8 +296,8 @@ def hetero_table(seeds: list[int], n_train: int = 200, n_test: int = 2000) -> li
     ]
     for name, (a, b), f, sd in hetero_sets():
         models: dict[str, Callable[[], Any]] = {"hom": GaussianProcess}
-        for m in METHODS:
-            models[m] = lambda m=m: HeteroscedasticGP(method=m, random_state=0)
+        for method in METHODS:
+            models[method] = functools.partial(HeteroscedasticGP, method=method, random_state=0)
         nl: dict[str, list[float]] = {k: [] for k in models}
         cpu = dict.fromkeys(models, 0.0)
         oracle: list[float] = []
@@ -289,11 +346,18 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument(
         "--part",
-        choices=("all", "loo", "hetero"),
+        choices=("all", "loo", "hetero", "coverage"),
         default="all",
-        help="only the leave-one-demonstration-out sets or only the heteroscedastic sets",
+        help="one part: leave-one-demonstration-out, heteroscedastic sets, or the coverage "
+        "study on generated smoothly deviating demonstrations (not part of 'all')",
     )
+    parser.add_argument("--coverage-sets", type=int, default=12, help="sets per coverage row")
     args = parser.parse_args(argv)
+    if args.part == "coverage":
+        print(f"## Coverage over {args.coverage_sets} generated sets per row (LocalGP)\n")
+        for line in coverage_table(args.coverage_sets, args.n_steps):
+            print(line, flush=True)
+        return
     if args.part != "loo":
         print("## Generated heteroscedastic sets (200 train, 2000 test points)\n")
         for line in hetero_table([0] if args.quick else [0, 1, 2]):

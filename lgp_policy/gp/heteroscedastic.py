@@ -58,6 +58,7 @@ __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
     "NOISE_BOUNDS",
+    "STOPPED_EARLY",
     "EMResult",
     "HeteroscedasticGP",
     "default_noise_kernel",
