@@ -559,11 +559,14 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         relevant[np.argmax(logw, axis=1), np.arange(n)] = True
         return relevant
 
-    def _local_predictions(self, X: NDArray[np.float64], relevant: NDArray[np.bool_]):
+    def _local_predictions(
+        self, X: NDArray[np.float64], relevant: NDArray[np.bool_], noisy: NDArray[np.bool_]
+    ):
         """Per model: latent mean, latent var, noise var, prior var; each (L, n, n_targets).
 
-        Where a model is not ``relevant`` its mean is 0 and its variance the prior (and its
-        noise 0, unless ``combine_noisy``, which evaluates every model's noise).
+        Where a model is not ``relevant`` its mean is 0 and its variance the prior; its noise is
+        evaluated where ``noisy`` (elsewhere 0). One latent solve per model and test point (the
+        public ``predict_latent`` and ``noise_variance`` would each repeat it).
         """
         L, n, t = len(self.models_), X.shape[0], self._y_mean.shape[0]
         mu = np.zeros((L, n, t))
@@ -571,30 +574,31 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         noise = np.zeros((L, n, t))
         prior = np.empty((L, n, t))
         for l, model in enumerate(self.models_):
-            prior_l = _prior_variance(model, X).reshape(n, -1)
+            gp = _latent_model(model)
+            prior_l = (gp.kernel_.diag(X) - gp._noise_level)[:, None]
             prior[l] = prior_l
             var[l] = prior_l
             near = relevant[l]
-            if self.combine_noisy:
-                noise[l] = model.noise_variance(X).reshape(n, -1)
-            if not np.any(near):
-                continue
-            Xn = X[near]
-            m, s = model.predict_latent(Xn)
-            mu[l, near] = m.reshape(m.shape[0], -1)
-            var[l, near] = (s**2).reshape(m.shape[0], -1)
-            if not self.combine_noisy:
-                noise[l, near] = model.noise_variance(Xn).reshape(m.shape[0], -1)
+            if np.any(near):
+                m, v = gp._predict_normalized(X[near])  # normalised units (the models' own)
+                mu[l, near] = m
+                var[l, near] = v[:, None]
+            need = noisy[l]
+            if np.any(need):
+                noise[l, need] = _noise_normalized(model, X[need])[:, None]
         return mu, np.maximum(var, 1e-12), noise, prior
 
     def _combine(self, X: NDArray[np.float64]):
         logw_nl = self._weights(X, self.centers_)  # (n, L)
         relevant = self._relevant(X, logw_nl)
-        mu, var, noise, prior = self._local_predictions(X, relevant)  # Algorithm 2, lines 1-6
-        logw = logw_nl.T[:, :, None]  # (L, n, 1)
         # Noise r(x), added after combining: the noise of the model whose training inputs
-        # surround x (see _noise_weights).
-        r = np.sum(self._noise_weights(X, relevant)[:, :, None] * noise, axis=0)
+        # surround x (see _noise_weights); a model whose weight underflows to 0 at x adds
+        # exactly nothing there and is not evaluated.
+        rho = self._noise_weights(X, relevant)
+        noisy = np.ones_like(relevant) if self.combine_noisy else rho > 0.0
+        mu, var, noise, prior = self._local_predictions(X, relevant, noisy)  # Alg. 2, lines 1-6
+        logw = logw_nl.T[:, :, None]  # (L, n, 1)
+        r = np.sum(rho[:, :, None] * noise, axis=0)
         if self.combine_noisy:
             var = var + noise
             prior = prior + noise
@@ -643,7 +647,8 @@ def _latent_model(model) -> GaussianProcess:
     return model.gp_ if isinstance(model, HeteroscedasticGP) else model
 
 
-def _prior_variance(model, X: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Latent prior variance k(x, x) of a local model at X, (n,)."""
-    gp = _latent_model(model)
-    return gp.kernel_.diag(X) - gp._noise_level
+def _noise_normalized(model, X: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Noise variance r(x) of a local model at X in its (normalised) units, (n,)."""
+    if isinstance(model, HeteroscedasticGP):
+        return np.exp(model._log_noise_normalized(X))
+    return np.full(X.shape[0], model._noise_level)
