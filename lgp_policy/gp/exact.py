@@ -51,6 +51,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 _potrf = scipy.linalg.lapack.dpotrf
 _potri = scipy.linalg.lapack.dpotri
+_potrs = scipy.linalg.lapack.dpotrs
 
 #: Isotropic kernels whose matrices are built from cached training distances.
 _CACHED_KERNELS = (SquaredExponential, Exponential)
@@ -209,54 +210,68 @@ class _StackedLML:
 
     The GPs' (unique-input) problems are stacked into ``(B, m, m)`` arrays, ``m`` the largest;
     a smaller problem is padded with independent unit-variance dummy inputs with target 0
-    (identity rows and columns of ``K_y``), which add exactly 0 to the value and the gradient.
-    Numpy's stacked Cholesky and inverse then run the ``B`` factorisations in one call: for
-    the small local models of :class:`~lgp_policy.gp.local.LocalGP` the per-GP Python work of
-    :meth:`GaussianProcess._lml` cost several times the algebra. Same value and gradient as
-    the sum of the GPs' ``_lml`` to rounding (tested); where any ``K_y`` needs jitter the
-    caller falls back to that sum (``__call__`` returns ``None``).
+    (identity rows and columns of ``K_y``: their distances to everything are ``PAD_DISTANCE``,
+    so every kernel term and its gradient is exactly 0 there), which add exactly 0 to the value
+    and the gradient. The kernel matrices, their gradients and the contractions are then one
+    numpy operation each for all ``B`` problems, and only the factorisation and inversion run
+    per problem (LAPACK, measured faster than numpy's stacked routines at these sizes): for the
+    small local models of :class:`~lgp_policy.gp.local.LocalGP` the per-GP Python work of
+    :meth:`GaussianProcess._lml` cost several times the algebra. Same value and gradient as the
+    sum of the GPs' ``_lml`` to rounding (tested); where any ``K_y`` needs jitter ``__call__``
+    returns ``None`` and the caller falls back to that sum.
+
+    Gradient: with ``W`` the lower triangle of ``K_y^-1`` and ``a = K_y^-1 y``,
+    ``dLML/dtheta_j = (a^T G_j a - n_t tr(K_y^-1 G_j)) / 2`` and, ``G_j`` symmetric,
+    ``tr(K_y^-1 G_j) = 2 sum(W * G_j) - sum(diag(W) * diag(G_j))``.
     """
+
+    #: Distance of a padding input to every input (finite: its products with 0 stay 0).
+    PAD_DISTANCE = 1e120
 
     def __init__(self, gps: list[GaussianProcess]) -> None:
         self.gps = gps
-        kernel = gps[0].kernel_
         self.parts: list[tuple[str, int]] = []
         start = 0
-        for leaf in kernel.leaves():
-            kind = "noise" if leaf.is_noise else type(leaf).__name__
-            self.parts.append((kind, start))
+        for leaf in gps[0].kernel_.leaves():
+            self.parts.append(("noise" if leaf.is_noise else type(leaf).__name__, start))
             start += leaf.n_dims
         sizes = [gp._data.X.shape[0] for gp in gps]
         B, m = len(gps), max(sizes)
         n_t = gps[0]._data.ybar.shape[1]
         valid = np.zeros((B, m), dtype=bool)
-        self.sqdist = np.zeros((B, m, m) if self._has("SquaredExponential") else (B, 0, 0))
-        self.dist = np.zeros((B, m, m) if self._has("Exponential") else (B, 0, 0))
+        for b, n in enumerate(sizes):
+            valid[b, :n] = True
+        self.dist: dict[str, NDArray[np.float64]] = {}
+        for kind, _ in self.parts:
+            if kind == "noise" or kind in self.dist:
+                continue
+            D = np.full(
+                (B, m, m),
+                self.PAD_DISTANCE**2 if kind == "SquaredExponential" else self.PAD_DISTANCE,
+            )
+            for b, (gp, n) in enumerate(zip(gps, sizes, strict=True)):
+                if kind == "SquaredExponential":
+                    D[b, :n, :n] = gp._training_sqdist()
+                else:
+                    D[b, :n, :n] = gp._training_dist()
+            self.dist[kind] = D
         self.Y = np.zeros((B, m, n_t))
         self.counts = np.ones((B, m))
         self.alpha = np.zeros((B, m))
         self.scatter = np.zeros((B, m))
         for b, (gp, n) in enumerate(zip(gps, sizes, strict=True)):
             d = gp._data
-            valid[b, :n] = True
-            if self.sqdist.size:
-                self.sqdist[b, :n, :n] = gp._training_sqdist()
-            if self.dist.size:
-                self.dist[b, :n, :n] = gp._training_dist()
             self.Y[b, :n] = d.ybar
             self.counts[b, :n] = d.counts
             self.alpha[b, :n] = gp._alpha_u
             self.scatter[b, :n] = np.sum(d.scatter, axis=1)
         self.is_valid = valid
         self.valid = valid.astype(np.float64)
-        self.mask = self.valid[:, :, None] * self.valid[:, None, :]  # zero the padding of K
         self.pad = 1.0 - self.valid  # unit diagonal of the padding
         self.n_t = n_t
         self.n_total = int(sum(sizes))
         self.diag = (slice(None), np.arange(m), np.arange(m))
-
-    def _has(self, kind: str) -> bool:
-        return any(k == kind for k, _ in self.parts)
+        self.replicated = bool(np.any(self.counts > 1.0))
 
     @classmethod
     def build(cls, gps: list[GaussianProcess]) -> _StackedLML | None:
@@ -277,13 +292,15 @@ class _StackedLML:
                 return None
             if gp._data.ybar.shape[1] != n_t:
                 return None
+        if np.any(np.abs(gps[0].kernel_.bounds) > 50.0):  # keep PAD_DISTANCE products finite
+            return None
         return cls(gps)
 
     def __call__(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]] | None:
         theta = np.asarray(theta, dtype=np.float64)
         for gp in self.gps:
             gp.n_lml_evaluations_ = getattr(gp, "n_lml_evaluations_", 0) + 1
-        K = np.zeros_like(self.mask)
+        K: NDArray[np.float64] | None = None
         grads: list[tuple[int, NDArray[np.float64]]] = []
         noise, noise_idx = 0.0, []
         for kind, j in self.parts:
@@ -292,49 +309,51 @@ class _StackedLML:
                 noise_idx.append(j)
                 continue
             if kind == "SquaredExponential":
-                Kl, G = SquaredExponential.from_sqdist(theta[j : j + 2], self.sqdist, True)
+                Kl, G = SquaredExponential.from_sqdist(theta[j : j + 2], self.dist[kind], True)
             else:
-                Kl, G = Exponential.from_dist(theta[j : j + 2], self.dist, True)
-            Kl *= self.mask  # (G[0] is Kl itself)
-            G[1] *= self.mask
-            K += Kl
+                Kl, G = Exponential.from_dist(theta[j : j + 2], self.dist[kind], True)
+            K = Kl.copy() if K is None else K + Kl  # (G[0] is Kl itself)
             grads += [(j, G[0]), (j + 1, G[1])]
+        if K is None:  # pragma: no cover - build() requires a signal term
+            return None
         s = noise + self.alpha  # one observation's noise variance at each unique input
         c = self.counts
         K[self.diag] += self.valid * s / c + self.pad
-        s = np.where(self.is_valid & (s > 0), s, 1.0)  # in the replicate terms (0 where c = 1)
-        # One LAPACK factorisation and inversion per block (measured faster than numpy's
-        # stacked cholesky + inv on these sizes); the inverse's lower triangle is mirrored.
-        Kinv = np.empty_like(K)
+        W = np.empty_like(K)
+        a = np.empty_like(self.Y)
         logdet = 0.0
         for b in range(K.shape[0]):
             L, info = _potrf(K[b], lower=1)
             if info != 0:
                 return None
             logdet += float(np.sum(np.log(L.diagonal())))
-            Kinv[b], info = _potri(L, lower=1)
+            a[b] = _potrs(L, self.Y[b], lower=1)[0]
+            W[b], info = _potri(L, lower=1)  # lower triangle of K_y^-1 (upper: zeros)
             if info != 0:  # pragma: no cover - L comes from a successful factorisation
                 return None
-        Kinv = np.tril(Kinv)
-        Kinv += np.swapaxes(np.tril(Kinv, -1), 1, 2)
-        a = Kinv @ self.Y
         n_t = self.n_t
-        lml = -0.5 * float(np.sum(self.Y * a)) - n_t * logdet - 0.5 * n_t * self.n_total * _LOG_2PI
-        per_group = (
-            -0.5 * n_t * (c - 1.0) * (_LOG_2PI + np.log(s))
-            - 0.5 * n_t * np.log(c)
-            - 0.5 * self.scatter / s
-        )
-        lml += float(np.sum(self.valid * per_group))
-        A = a @ np.swapaxes(a, 1, 2) - n_t * Kinv  # dLML/dK_y = A / 2 (padding: G = 0)
+        lml = -0.5 * float(np.vdot(self.Y, a)) - n_t * logdet - 0.5 * n_t * self.n_total * _LOG_2PI
+        s = np.where(self.is_valid & (s > 0), s, 1.0)  # in the replicate terms (0 where c = 1)
+        if self.replicated:
+            per_group = (
+                -0.5 * n_t * (c - 1.0) * (_LOG_2PI + np.log(s))
+                - 0.5 * n_t * np.log(c)
+                - 0.5 * self.scatter / s
+            )
+            lml += float(np.vdot(self.valid, per_group))
+        W_diag = W[self.diag]
         grad = np.zeros_like(theta)
         for j, G in grads:
-            grad[j] = 0.5 * float(np.vdot(A, G))
+            quad = float(np.vdot(a, G @ a))
+            trace = 2.0 * float(np.vdot(W, G)) - float(np.vdot(W_diag, G[self.diag]))
+            grad[j] = 0.5 * (quad - n_t * trace)
         if noise_idx:
-            dnoise = 0.5 * float(np.sum(self.valid * A[self.diag] / c))
-            dnoise += float(
-                np.sum(self.valid * (-0.5 * n_t * (c - 1.0) / s + 0.5 * self.scatter / s**2))
-            )
+            A_diag = np.sum(a**2, axis=2) - n_t * W_diag  # diag(dLML/dK_y) * 2
+            dnoise = 0.5 * float(np.vdot(self.valid, A_diag / c))
+            if self.replicated:
+                dnoise += float(
+                    np.vdot(self.valid, -0.5 * n_t * (c - 1.0) / s + 0.5 * self.scatter / s**2)
+                )
             for j in noise_idx:
                 grad[j] = dnoise * float(np.exp(theta[j]))
         return lml, grad
