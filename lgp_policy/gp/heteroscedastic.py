@@ -55,13 +55,27 @@ well posed where demonstrations coincide exactly (zero spread: the squared resid
 their log is ``-inf``); the upper end keeps ``exp(z)`` finite wherever the z-process goes."""
 
 __all__ = [
+    "DEFAULT_METHOD",
+    "METHODS",
     "NOISE_BOUNDS",
     "EMResult",
     "HeteroscedasticGP",
     "default_noise_kernel",
+    "fit_noise_model",
     "most_likely_em",
     "signal_kernel",
 ]
+
+METHODS = ("em", "vhgp")
+"""How the noise model is learnt: ``"em"`` most-likely EM (Kersting et al. 2007,
+:func:`most_likely_em`), ``"vhgp"`` the variational heteroscedastic GP (Lazaro-Gredilla &
+Titsias 2011, :func:`lgp_policy.gp.variational.variational_heteroscedastic`)."""
+
+DEFAULT_METHOD = "em"
+"""The default of :data:`METHODS`, chosen on the measurements in ``docs/design-gp.md``."""
+
+#: EM / bound statuses that mean "stopped at an iteration cap" (a ConvergenceWarning).
+STOPPED_EARLY = ("max_em_iter reached", "max_iter reached")
 
 
 def signal_kernel(kernel: Kernel) -> Kernel:
@@ -174,6 +188,9 @@ class EMResult:
     objective: list[float] = field(default_factory=list)
     best_iter: int = 0
     status: str = ""
+    lognormal_noise: bool = False
+    """Predict the noise as ``E[exp(z*)] = exp(mean + var / 2)`` of the z-posterior (VHGP)
+    instead of ``exp(mean)`` (the most-likely EM's point estimate)."""
 
 
 def most_likely_em(
@@ -341,6 +358,32 @@ def most_likely_em(
     )
 
 
+def check_method(method: Any) -> str:
+    """``method`` if it is one of :data:`METHODS`, or a ValueError naming it."""
+    if not isinstance(method, str) or method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    return method
+
+
+def fit_noise_model(
+    datasets: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    kernel: Kernel,
+    noise_kernel: Kernel | None,
+    *,
+    method: str = DEFAULT_METHOD,
+    **kwargs: Any,
+) -> EMResult:
+    """Learn the heteroscedastic model of one or more data sets with ``method``
+    (:data:`METHODS`): :func:`most_likely_em` or
+    :func:`~lgp_policy.gp.variational.variational_heteroscedastic`, which take the same
+    arguments (``kwargs``) and return the same :class:`EMResult`."""
+    if check_method(method) == "vhgp":
+        from lgp_policy.gp.variational import variational_heteroscedastic
+
+        return variational_heteroscedastic(datasets, kernel, noise_kernel, **kwargs)
+    return most_likely_em(datasets, kernel, noise_kernel, **kwargs)
+
+
 def _data_scale(y: NDArray[np.float64]) -> float:
     """Standard deviation of ``y``; for constant ``y`` its magnitude (1 if it is 0)."""
     std = float(np.std(y))
@@ -369,7 +412,7 @@ def em_warning(status: str, where: str) -> None:
     warnings.warn(
         f"{where}: the heteroscedastic EM stopped without converging ({status}); the model of "
         "the iteration with the best objective (log p(y | X, R)) is kept. Raise max_em_iter or "
-        "tol to silence this.",
+        "tol (method='em'), or max_iter (method='vhgp'), to silence this.",
         ConvergenceWarning,
         stacklevel=3,
     )
@@ -381,6 +424,11 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
     Args:
         kernel: kernel of the first (homoscedastic) GP, e.g. Eq. (10); its WhiteNoise terms are
             dropped once ``R`` takes over. Default ``SquaredExponential(1, 1) + WhiteNoise(0.1)``.
+        method: how the noise model is learnt, one of :data:`METHODS`: ``"em"`` (the
+            most-likely EM below) or ``"vhgp"`` (the variational bound of Lazaro-Gredilla &
+            Titsias 2011, :mod:`lgp_policy.gp.variational`; ``max_iter`` then bounds its
+            L-BFGS iterations and ``max_em_iter``, ``tol``, ``n_samples`` are unused). Default
+            :data:`DEFAULT_METHOD`.
         noise_kernel: kernel of the z-process (log noise). Default
             (``None``): :func:`default_noise_kernel`, built from the fitted signal length scale.
         noise_bounds: ``(low, high)`` bounds of the noise standard deviation ``sqrt(r(x))``
@@ -423,6 +471,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         self,
         kernel: Kernel | None = None,
         *,
+        method: str = DEFAULT_METHOD,
         noise_kernel: Kernel | None = None,
         noise_bounds: tuple[float, float] = NOISE_BOUNDS,
         optimizer: Optimizer = "L-BFGS-B",
@@ -436,6 +485,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         random_state: int | np.random.Generator | None = None,
     ) -> None:
         self.kernel = kernel
+        self.method = method
         self.noise_kernel = noise_kernel
         self.noise_bounds = noise_bounds
         self.optimizer = optimizer
@@ -458,6 +508,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         ):
             raise ValueError(f"n_samples must be None or a positive int, got {self.n_samples!r}")
         check_noise_bounds(self.noise_bounds)
+        check_method(self.method)
 
     @with_single_blas_thread
     def fit(self, X: ArrayLike, y: ArrayLike) -> HeteroscedasticGP:
@@ -492,10 +543,11 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         yn = (y - self._y_mean) / self._y_std
         lo, hi = check_noise_bounds(self.noise_bounds)
         kernel = default_kernel() if self.kernel is None else self.kernel
-        result = most_likely_em(
+        result = fit_noise_model(
             [(X, yn)],
             kernel,
             self.noise_kernel,
+            method=self.method,
             learn=self.optimizer is not None,
             optimizer=self.optimizer,
             n_restarts=self.n_restarts,
@@ -508,7 +560,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
             log_noise_bounds=(2 * math.log(lo * work), 2 * math.log(hi * work)),
         )
         self._set_state(result, 0)
-        if result.status == "max_em_iter reached":
+        if result.status in STOPPED_EARLY:
             em_warning(result.status, type(self).__name__)
 
     def _set_state(self, result: EMResult, index: int) -> None:
@@ -522,6 +574,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         self.em_best_iter_ = result.best_iter
         self.em_status_ = result.status
         self.log_noise_bounds_ = result.log_noise_bounds
+        self._lognormal_noise = result.lognormal_noise
 
     @classmethod
     def _from_em(
@@ -546,7 +599,12 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         """``log r(X)`` in normalised units, within ``log_noise_bounds_`` (never overflows)."""
         if self.noise_gp_ is None:
             return np.full(X.shape[0], self.noise_offset_)
-        return np.clip(self.noise_gp_.predict(X) + self.noise_offset_, *self.log_noise_bounds_)
+        if getattr(self, "_lognormal_noise", False):  # E[exp(z*)], z* ~ N(mean, var)
+            mean, std = self.noise_gp_.predict(X, return_std=True)
+            z = mean + 0.5 * std**2
+        else:
+            z = self.noise_gp_.predict(X)
+        return np.clip(z + self.noise_offset_, *self.log_noise_bounds_)
 
     def _predict_normalized(self, X: NDArray[np.float64]):
         """Latent mean ``(n,)``, latent variance ``(n,)`` and r(x) ``(n,)``, normalised units."""

@@ -70,6 +70,7 @@ def spread_at(X, y, t0: float) -> float:
 
 MODELS = {
     "heteroscedastic": lambda: HeteroscedasticGP(random_state=0),
+    "vhgp": lambda: HeteroscedasticGP(method="vhgp", random_state=0),
     "local": lambda: LocalGP(max_points=25, random_state=0),
 }
 
