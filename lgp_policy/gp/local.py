@@ -72,12 +72,15 @@ from lgp_policy.gp.exact import (
     unique_rows,
 )
 from lgp_policy.gp.heteroscedastic import (
+    DEFAULT_METHOD,
     NOISE_BOUNDS,
+    STOPPED_EARLY,
     HeteroscedasticGP,
     _data_scale,
+    check_method,
     check_noise_bounds,
     em_warning,
-    most_likely_em,
+    fit_noise_model,
     signal_kernel,
 )
 from lgp_policy.gp.kernels import Kernel, SquaredExponential
@@ -110,6 +113,9 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         max_points: most distinct training inputs per local model (replicates are free).
         local_model: ``"heteroscedastic"`` (:class:`HeteroscedasticGP`) or ``"exact"``
             (:class:`GaussianProcess`).
+        method: how heteroscedastic local models learn their noise, one of
+            :data:`lgp_policy.gp.heteroscedastic.METHODS` (``"em"``: most-likely EM, ``"vhgp"``:
+            variational bound); default :data:`~lgp_policy.gp.heteroscedastic.DEFAULT_METHOD`.
         combine: ``"product"`` (Eqs. 8-9), ``"rbcm"`` or ``"nearest"`` (see module docstring).
         combine_noisy: combine the noisy predictive distributions (the known trap; for
             comparison only).
@@ -148,6 +154,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         threshold: float = 0.5,
         max_points: int = 400,
         local_model: str = "heteroscedastic",
+        method: str = DEFAULT_METHOD,
         combine: str = DEFAULT_COMBINE,
         combine_noisy: bool = False,
         hyperparameters: str = "shared",
@@ -167,6 +174,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         self.threshold = threshold
         self.max_points = max_points
         self.local_model = local_model
+        self.method = method
         self.combine = combine
         self.combine_noisy = combine_noisy
         self.hyperparameters = hyperparameters
@@ -211,6 +219,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         if self.order not in ("sorted", "given"):
             raise ValueError(f"order must be 'sorted' or 'given', got {self.order!r}")
         check_noise_bounds(self.noise_bounds)
+        check_method(self.method)
 
     # ------------------------------------------------------------- Algorithm 1
     def _weights(self, X: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -431,6 +440,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             "log_noise_bounds": log_bounds,
         }
         params = {
+            "method": self.method,
             "noise_kernel": noise_kernel,
             "noise_bounds": self.noise_bounds,
             "optimizer": None,
@@ -444,7 +454,9 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             # Learn the signal, noise and z-process hyperparameters once, on a bounded subset of
             # the data (sum of the subsets' LMLs), then run every model's EM with them fixed.
             subsets, complete = self._shared_data(X, index_sets)
-            learned = most_likely_em([(X[i], yn[i]) for i in subsets], kernel, noise_kernel, **em)
+            learned = fit_noise_model(
+                [(X[i], yn[i]) for i in subsets], kernel, noise_kernel, method=self.method, **em
+            )
             statuses.append(learned.status)
             kernel = learned.homoscedastic_kernel
             noise_kernel = learned.noise_kernel
@@ -462,12 +474,13 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         models = []
         for Xl, yl in datasets:
             if self.hyperparameters == "local" and self.optimizer is not None:
-                result = most_likely_em([(Xl, yl)], kernel, noise_kernel, **em)
+                result = fit_noise_model([(Xl, yl)], kernel, noise_kernel, method=self.method, **em)
             else:
-                result = most_likely_em(
+                result = fit_noise_model(
                     [(Xl, yl)],
                     kernel,
                     noise_kernel,
+                    method=self.method,
                     **{**em, "optimizer": None},
                     learn=False,
                     refit_kernel=refit_kernel,
@@ -485,7 +498,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         (an EM whose objective decreased has passed its best iteration, which is kept: recorded,
         not warned about)."""
         self.em_status_ = statuses
-        stopped = [st for st in statuses if st == "max_em_iter reached"]
+        stopped = [st for st in statuses if st in STOPPED_EARLY]
         if stopped:
             kinds = ", ".join(f"{stopped.count(k)} {k}" for k in sorted(set(stopped)))
             em_warning(f"{len(stopped)} of {len(statuses)} EM runs: {kinds}", "LocalGP")
