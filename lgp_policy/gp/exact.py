@@ -77,6 +77,10 @@ def cholesky_with_jitter(K: NDArray[np.float64]) -> tuple[NDArray[np.float64], f
     Raises:
         NotPositiveDefiniteError: if even the largest jitter in ``JITTER_STEPS`` fails.
     """
+    if K.size:
+        L, info = _potrf(K, lower=1)  # the usual case, without the wrapper's checks
+        if info == 0:
+            return L, 0.0
     scale = float(np.mean(np.diag(K))) if K.size else 1.0
     scale = scale if np.isfinite(scale) and scale > 0 else 1.0
     for rel in JITTER_STEPS:
@@ -406,12 +410,12 @@ class _Replicates:
             self.ybar = y.copy()
             self.scatter = np.zeros_like(y)
             return
-        sums = np.zeros((m, y.shape[1]))
-        np.add.at(sums, self.inverse, y)
+        inv = self.inverse
+        cols = range(y.shape[1])
+        sums = np.stack([np.bincount(inv, weights=y[:, j], minlength=m) for j in cols], axis=1)
         self.ybar = sums / self.counts[:, None]
-        resid = y - self.ybar[self.inverse]
-        self.scatter = np.zeros((m, y.shape[1]))
-        np.add.at(self.scatter, self.inverse, resid**2)
+        sq = (y - self.ybar[inv]) ** 2
+        self.scatter = np.stack([np.bincount(inv, weights=sq[:, j], minlength=m) for j in cols], 1)
 
 
 class GaussianProcess(ParamsMixin):
@@ -507,7 +511,7 @@ class GaussianProcess(ParamsMixin):
         if self._data.collapsed:
             a_u = np.zeros(self._data.X.shape[0])
             a_u[self._data.inverse] = alpha
-            if not np.allclose(alpha, a_u[self._data.inverse], rtol=1e-12, atol=0.0):
+            if np.any(np.abs(alpha - a_u[self._data.inverse]) > 1e-12 * np.abs(alpha)):
                 self._data = _Replicates(X, Yn, False)  # alpha differs within a group
                 self._sqdist_cache = None
                 self._dist_cache = None
@@ -694,15 +698,15 @@ class GaussianProcess(ParamsMixin):
         d = self._data
         K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, self.kernel_.theta)
         s = noise + self._alpha_u
-        K[np.diag_indices_from(K)] += s / d.counts
+        K.flat[:: K.shape[0] + 1] += s / d.counts
         self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
         self._train_noise = s / d.counts + self.jitter_  # K_y - K on the (unique) inputs
-        self.alpha_ = scipy.linalg.cho_solve((self.L_, True), d.ybar, check_finite=False)
+        self.alpha_ = _potrs(self.L_, d.ybar, lower=1)[0]
         self._noise_level = noise
         n_t = d.ybar.shape[1]
         lml = (  # Eq. (4) from this factorisation
-            -0.5 * float(np.sum(d.ybar * self.alpha_))
-            - n_t * float(np.sum(np.log(np.diag(self.L_))))
+            -0.5 * float(np.vdot(d.ybar, self.alpha_))
+            - n_t * float(np.sum(np.log(self.L_.diagonal())))
             - 0.5 * n_t * K.shape[0] * _LOG_2PI
         )
         if d.collapsed:
