@@ -176,7 +176,9 @@ def fit_shared_hyperparameters(
 ) -> NDArray[np.float64]:
     """Learn one ``theta`` for several fitted GPs by maximising the sum of their Eq. (4).
 
-    ``gps`` must be fitted (any hyperparameters) with kernels of the same structure. The sum of
+    ``gps`` must be fitted (any hyperparameters), or prepared with ``GaussianProcess._prepare``
+    (which skips the factorisation this function would discard), with kernels of the same
+    structure. The sum of
     independent data sets' log marginal likelihoods is the likelihood of the product-of-experts
     model of local GPs (Deisenroth & Ng 2015). The result is applied to ``gps`` and to
     ``apply_to`` (default: none besides ``gps``) without further optimisation.
@@ -485,6 +487,19 @@ class GaussianProcess(ParamsMixin):
         Returns:
             self
         """
+        self._prepare(X, y)
+        if self.optimizer is not None and self.kernel_.n_dims > 0:
+            self.kernel_.theta = self._optimize_theta(self.kernel_)
+        self._solve()
+        return self
+
+    def _prepare(self, X: ArrayLike, y: ArrayLike) -> GaussianProcess:
+        """``fit`` up to the factorisation: checked data, replicate groups, ``kernel_`` as given.
+
+        For callers that set the hyperparameters next (:func:`fit_shared_hyperparameters`, which
+        factorises at the ``theta`` it learns): factorising at the initial ``theta`` first
+        would be discarded. Returns ``self``, not usable for prediction until ``_set_theta``.
+        """
         X, y = check_X_y(X, y)
         self._check_params(X.shape[0])
         kernel = (default_kernel() if self.kernel is None else self.kernel).clone()
@@ -531,9 +546,6 @@ class GaussianProcess(ParamsMixin):
 
         self.kernel_ = kernel
         self.n_lml_evaluations_ = 0
-        if self.optimizer is not None and kernel.n_dims > 0:
-            self.kernel_.theta = self._optimize_theta(kernel)
-        self._solve()
         return self
 
     def _check_params(self, n_samples: int) -> None:
@@ -567,7 +579,8 @@ class GaussianProcess(ParamsMixin):
 
     def _set_theta(self, theta: ArrayLike) -> None:
         """Use hyperparameters ``theta`` (log space) and refactorise; no optimisation."""
-        self._check_fitted()
+        if not hasattr(self, "_data"):  # fitted or prepared (``_prepare``)
+            self._check_fitted()
         self.kernel_.theta = theta
         self._solve()
 
@@ -752,12 +765,16 @@ class GaussianProcess(ParamsMixin):
         triangular inverse are needed. Normalised units; rows follow ``self._data.X``.
         """
         D = self._train_noise
-        mean = self._data.ybar - D[:, None] * self.alpha_
+        mean = self._latent_mean_at_training()
         Linv, info = scipy.linalg.lapack.dtrtri(self.L_, lower=1)
         if info != 0:  # pragma: no cover - L_ comes from a successful factorisation
             return self._predict_normalized(self._data.X)
         var = D - D**2 * np.einsum("ij,ij->j", Linv, Linv)
         return mean, np.maximum(var, 0.0)
+
+    def _latent_mean_at_training(self) -> NDArray[np.float64]:
+        """The mean of :meth:`_latent_at_training` alone (no triangular inverse)."""
+        return self._data.ybar - self._train_noise[:, None] * self.alpha_
 
     def _out(self, a: NDArray[np.float64]) -> NDArray[np.float64]:
         return a[:, 0] if self._single_target else a

@@ -291,3 +291,19 @@ def test_shared_hyperparameters_same_with_and_without_stacking(data, monkeypatch
     stacked = learn()
     monkeypatch.setattr(_StackedLML, "build", classmethod(lambda cls, gps: None))
     np.testing.assert_allclose(learn(), stacked, atol=1e-5)
+
+
+def test_prepared_gps_learn_the_same_as_fitted_ones(data):
+    """``_prepare`` skips only the factorisation that fit_shared_hyperparameters redoes."""
+    X, y = data
+    parts = [(X[i::3], y[i::3]) for i in range(3)]
+    fitted = [GaussianProcess(_kernel(), optimizer=None).fit(Xp, yp) for Xp, yp in parts]
+    prepared = [GaussianProcess(_kernel(), optimizer=None)._prepare(Xp, yp) for Xp, yp in parts]
+    assert not hasattr(prepared[0], "alpha_")
+    np.testing.assert_allclose(
+        fit_shared_hyperparameters(prepared), fit_shared_hyperparameters(fitted), atol=1e-10
+    )
+    Xs = np.linspace(0.0, 5.0, 7)[:, None]
+    for a, b in zip(prepared, fitted, strict=True):
+        np.testing.assert_allclose(a.predict(Xs, return_std=True), b.predict(Xs, return_std=True))
+        np.testing.assert_allclose(a._latent_mean_at_training(), a._latent_at_training()[0])
