@@ -325,18 +325,21 @@ class _StackedLML:
         s = noise + self.alpha  # one observation's noise variance at each unique input
         c = self.counts
         K[self.diag] += self.valid * s / c + self.pad
-        W = np.empty_like(K)
+        # In place, no copies: K[b].T is K[b] (symmetric) in Fortran order; its factor and then
+        # the inverse's triangle overwrite it, so W (= K, read in C order) holds one triangle
+        # of K_y^-1 and zeros in the other (``clean``).
         a = np.empty_like(self.Y)
         logdet = 0.0
         for b in range(K.shape[0]):
-            L, info = _potrf(K[b], lower=1)
+            L, info = _potrf(K[b].T, lower=1, overwrite_a=1, clean=1)
             if info != 0:
                 return None
             logdet += float(np.sum(np.log(L.diagonal())))
             a[b] = _potrs(L, self.Y[b], lower=1)[0]
-            W[b], info = _potri(L, lower=1)  # lower triangle of K_y^-1 (upper: zeros)
+            _, info = _potri(L, lower=1, overwrite_c=1)
             if info != 0:  # pragma: no cover - L comes from a successful factorisation
                 return None
+        W = K
         n_t = self.n_t
         lml = -0.5 * float(np.vdot(self.Y, a)) - n_t * logdet - 0.5 * n_t * self.n_total * _LOG_2PI
         s = np.where(self.is_valid & (s > 0), s, 1.0)  # in the replicate terms (0 where c = 1)
