@@ -19,11 +19,22 @@ Methods (all fit their hyperparameters by maximising the log marginal likelihood
 * ``celerite2``: O(n) solver for 1-D inputs with an SHO kernel (Q = 1/sqrt(2), a smooth kernel but
   not the squared exponential), hyperparameters by L-BFGS-B on its likelihood.
 
+Inputs (``--inputs``): ``replicated`` (the demonstrations on one time grid) and ``distinct`` (each
+demonstration on its own time stamps, as real demonstrations are); a second table puts the two
+side by side for every n and method.
+
 Where ``exact`` and ``sklearn`` would take too long (n above ``--max-exact``), their fit time is
 extrapolated as (measured time of ONE likelihood+gradient evaluation at that n) x (number of
 evaluations the optimiser needed at the largest n run in full), and their prediction time as the
-largest measured one scaled by n^2; such rows are marked ``extrap.``. Threads: BLAS is pinned to
-one thread with threadpoolctl.
+largest measured one scaled by n^2; such rows are marked ``extrap.``. With
+``--max-extrapolate`` below n (no evaluation at that n either), the target check scales
+scikit-learn's measured cost at its largest n by n^3 and says that it is an estimate. Threads:
+BLAS is pinned to one thread with threadpoolctl.
+
+The figures in ``docs/design-gp.md``::
+
+    python benchmarks/gp_scaling.py --sizes 2000 8000 --max-exact 2000 --max-extrapolate 2000 \
+        --no-celerite
 
 Usage::
 

@@ -365,6 +365,8 @@ class _StackedLML:
                 )
             for j in noise_idx:
                 grad[j] = dnoise * float(np.exp(theta[j]))
+        if not (np.isfinite(lml) and np.all(np.isfinite(grad))):  # e.g. theta beyond bounds
+            return None
         return lml, grad
 
 
