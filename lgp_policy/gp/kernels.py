@@ -100,11 +100,20 @@ class Kernel(ParamsMixin, ABC):
         return new
 
     def clone(self) -> Kernel:
-        params = {
-            k: (v.clone() if isinstance(v, Kernel) else v)
-            for k, v in self.get_params(deep=False).items()
-        }
-        return type(self)(**params)
+        """An independent copy (the same constructor arguments, nested kernels cloned).
+
+        Copies the attributes directly instead of calling the constructor again: the arguments
+        were validated when this kernel was made, and solvers clone kernels in their inner loops
+        (reading the constructor's signature each time cost more than the linear algebra on
+        the small matrices of local models)."""
+        new = object.__new__(type(self))
+        for k, v in self.__dict__.items():
+            if isinstance(v, Kernel):
+                v = v.clone()
+            elif isinstance(v, np.ndarray):
+                v = v.copy()
+            new.__dict__[k] = v
+        return new
 
     def __add__(self, other: Kernel) -> Sum:
         if not isinstance(other, Kernel):
@@ -193,6 +202,16 @@ class _Stationary(Kernel):
                 np.fill_diagonal(d2, 0.0)  # exact zeros (the expansion leaves rounding errors)
         return Xs, d2
 
+    def _dist(self, X, Y):
+        """Scaled inputs of ``X`` and scaled distances between ``X`` and ``Y``."""
+        X = _as_2d(X, "X")
+        if X.shape[1] == 1:  # 1-D: |x - y| directly (no square and root)
+            Xs = self._scaled(X)
+            Ys = Xs if Y is None else self._scaled(_as_2d(Y, "Y"))
+            return Xs, np.abs(Xs[:, 0][:, None] - Ys[:, 0][None, :])
+        Xs, d2 = self._sqdist(X, Y)
+        return Xs, np.sqrt(d2)
+
     def diag(self, X):
         X = _as_2d(X, "X")
         return np.full(X.shape[0], self.variance)
@@ -261,8 +280,7 @@ class Exponential(_Stationary):
     def __call__(self, X, Y=None, eval_gradient=False):
         if eval_gradient and Y is not None:
             raise ValueError("eval_gradient is only supported when Y is None")
-        Xs, d2 = self._sqdist(X, Y)
-        d = np.sqrt(d2)
+        Xs, d = self._dist(X, Y)
         K = self.variance * np.exp(-d)
         if not eval_gradient:
             return K
@@ -274,6 +292,22 @@ class Exponential(_Stationary):
         else:
             grad = np.stack([K, K * d], axis=2)
         return K, grad
+
+    @staticmethod
+    def from_dist(theta: NDArray[np.float64], dist: NDArray[np.float64], eval_gradient: bool):
+        """Isotropic ``k`` from unscaled distances and ``theta = log([variance, l])``.
+
+        Lets a solver cache the distances of its training inputs across hyperparameter values.
+        With ``eval_gradient`` returns ``(K, [dK/dtheta_0, dK/dtheta_1])`` (a list of matrices).
+        """
+        d = dist * np.exp(-theta[1])
+        K = np.negative(d) if eval_gradient else np.multiply(dist, -np.exp(-theta[1]))
+        np.exp(K, out=K)
+        K *= np.exp(theta[0])
+        if not eval_gradient:
+            return K
+        d *= K
+        return K, [K, d]
 
 
 class WhiteNoise(Kernel):

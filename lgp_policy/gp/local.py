@@ -72,12 +72,15 @@ from lgp_policy.gp.exact import (
     unique_rows,
 )
 from lgp_policy.gp.heteroscedastic import (
+    DEFAULT_METHOD,
     NOISE_BOUNDS,
+    STOPPED_EARLY,
     HeteroscedasticGP,
     _data_scale,
+    check_method,
     check_noise_bounds,
     em_warning,
-    most_likely_em,
+    fit_noise_model,
     signal_kernel,
 )
 from lgp_policy.gp.kernels import Kernel, SquaredExponential
@@ -110,6 +113,9 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         max_points: most distinct training inputs per local model (replicates are free).
         local_model: ``"heteroscedastic"`` (:class:`HeteroscedasticGP`) or ``"exact"``
             (:class:`GaussianProcess`).
+        method: how heteroscedastic local models learn their noise, one of
+            :data:`lgp_policy.gp.heteroscedastic.METHODS` (``"em"``: most-likely EM, ``"vhgp"``:
+            variational bound); default :data:`~lgp_policy.gp.heteroscedastic.DEFAULT_METHOD`.
         combine: ``"product"`` (Eqs. 8-9), ``"rbcm"`` or ``"nearest"`` (see module docstring).
         combine_noisy: combine the noisy predictive distributions (the known trap; for
             comparison only).
@@ -148,6 +154,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         threshold: float = 0.5,
         max_points: int = 400,
         local_model: str = "heteroscedastic",
+        method: str = DEFAULT_METHOD,
         combine: str = DEFAULT_COMBINE,
         combine_noisy: bool = False,
         hyperparameters: str = "shared",
@@ -167,6 +174,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         self.threshold = threshold
         self.max_points = max_points
         self.local_model = local_model
+        self.method = method
         self.combine = combine
         self.combine_noisy = combine_noisy
         self.hyperparameters = hyperparameters
@@ -211,6 +219,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         if self.order not in ("sorted", "given"):
             raise ValueError(f"order must be 'sorted' or 'given', got {self.order!r}")
         check_noise_bounds(self.noise_bounds)
+        check_method(self.method)
 
     # ------------------------------------------------------------- Algorithm 1
     def _weights(self, X: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -431,6 +440,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             "log_noise_bounds": log_bounds,
         }
         params = {
+            "method": self.method,
             "noise_kernel": noise_kernel,
             "noise_bounds": self.noise_bounds,
             "optimizer": None,
@@ -444,7 +454,9 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             # Learn the signal, noise and z-process hyperparameters once, on a bounded subset of
             # the data (sum of the subsets' LMLs), then run every model's EM with them fixed.
             subsets, complete = self._shared_data(X, index_sets)
-            learned = most_likely_em([(X[i], yn[i]) for i in subsets], kernel, noise_kernel, **em)
+            learned = fit_noise_model(
+                [(X[i], yn[i]) for i in subsets], kernel, noise_kernel, method=self.method, **em
+            )
             statuses.append(learned.status)
             kernel = learned.homoscedastic_kernel
             noise_kernel = learned.noise_kernel
@@ -462,12 +474,13 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         models = []
         for Xl, yl in datasets:
             if self.hyperparameters == "local" and self.optimizer is not None:
-                result = most_likely_em([(Xl, yl)], kernel, noise_kernel, **em)
+                result = fit_noise_model([(Xl, yl)], kernel, noise_kernel, method=self.method, **em)
             else:
-                result = most_likely_em(
+                result = fit_noise_model(
                     [(Xl, yl)],
                     kernel,
                     noise_kernel,
+                    method=self.method,
                     **{**em, "optimizer": None},
                     learn=False,
                     refit_kernel=refit_kernel,
@@ -485,7 +498,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         (an EM whose objective decreased has passed its best iteration, which is kept: recorded,
         not warned about)."""
         self.em_status_ = statuses
-        stopped = [st for st in statuses if st == "max_em_iter reached"]
+        stopped = [st for st in statuses if st in STOPPED_EARLY]
         if stopped:
             kinds = ", ".join(f"{stopped.count(k)} {k}" for k in sorted(set(stopped)))
             em_warning(f"{len(stopped)} of {len(statuses)} EM runs: {kinds}", "LocalGP")
@@ -559,11 +572,14 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         relevant[np.argmax(logw, axis=1), np.arange(n)] = True
         return relevant
 
-    def _local_predictions(self, X: NDArray[np.float64], relevant: NDArray[np.bool_]):
+    def _local_predictions(
+        self, X: NDArray[np.float64], relevant: NDArray[np.bool_], noisy: NDArray[np.bool_]
+    ):
         """Per model: latent mean, latent var, noise var, prior var; each (L, n, n_targets).
 
-        Where a model is not ``relevant`` its mean is 0 and its variance the prior (and its
-        noise 0, unless ``combine_noisy``, which evaluates every model's noise).
+        Where a model is not ``relevant`` its mean is 0 and its variance the prior; its noise is
+        evaluated where ``noisy`` (elsewhere 0). One latent solve per model and test point (the
+        public ``predict_latent`` and ``noise_variance`` would each repeat it).
         """
         L, n, t = len(self.models_), X.shape[0], self._y_mean.shape[0]
         mu = np.zeros((L, n, t))
@@ -571,30 +587,31 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         noise = np.zeros((L, n, t))
         prior = np.empty((L, n, t))
         for l, model in enumerate(self.models_):
-            prior_l = _prior_variance(model, X).reshape(n, -1)
+            gp = _latent_model(model)
+            prior_l = (gp.kernel_.diag(X) - gp._noise_level)[:, None]
             prior[l] = prior_l
             var[l] = prior_l
             near = relevant[l]
-            if self.combine_noisy:
-                noise[l] = model.noise_variance(X).reshape(n, -1)
-            if not np.any(near):
-                continue
-            Xn = X[near]
-            m, s = model.predict_latent(Xn)
-            mu[l, near] = m.reshape(m.shape[0], -1)
-            var[l, near] = (s**2).reshape(m.shape[0], -1)
-            if not self.combine_noisy:
-                noise[l, near] = model.noise_variance(Xn).reshape(m.shape[0], -1)
+            if np.any(near):
+                m, v = gp._predict_normalized(X[near])  # normalised units (the models' own)
+                mu[l, near] = m
+                var[l, near] = v[:, None]
+            need = noisy[l]
+            if np.any(need):
+                noise[l, need] = _noise_normalized(model, X[need])[:, None]
         return mu, np.maximum(var, 1e-12), noise, prior
 
     def _combine(self, X: NDArray[np.float64]):
         logw_nl = self._weights(X, self.centers_)  # (n, L)
         relevant = self._relevant(X, logw_nl)
-        mu, var, noise, prior = self._local_predictions(X, relevant)  # Algorithm 2, lines 1-6
-        logw = logw_nl.T[:, :, None]  # (L, n, 1)
         # Noise r(x), added after combining: the noise of the model whose training inputs
-        # surround x (see _noise_weights).
-        r = np.sum(self._noise_weights(X, relevant)[:, :, None] * noise, axis=0)
+        # surround x (see _noise_weights); a model whose weight underflows to 0 at x adds
+        # exactly nothing there and is not evaluated.
+        rho = self._noise_weights(X, relevant)
+        noisy = np.ones_like(relevant) if self.combine_noisy else rho > 0.0
+        mu, var, noise, prior = self._local_predictions(X, relevant, noisy)  # Alg. 2, lines 1-6
+        logw = logw_nl.T[:, :, None]  # (L, n, 1)
+        r = np.sum(rho[:, :, None] * noise, axis=0)
         if self.combine_noisy:
             var = var + noise
             prior = prior + noise
@@ -643,7 +660,8 @@ def _latent_model(model) -> GaussianProcess:
     return model.gp_ if isinstance(model, HeteroscedasticGP) else model
 
 
-def _prior_variance(model, X: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Latent prior variance k(x, x) of a local model at X, (n,)."""
-    gp = _latent_model(model)
-    return gp.kernel_.diag(X) - gp._noise_level
+def _noise_normalized(model, X: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Noise variance r(x) of a local model at X in its (normalised) units, (n,)."""
+    if isinstance(model, HeteroscedasticGP):
+        return np.exp(model._log_noise_normalized(X))
+    return np.full(X.shape[0], model._noise_level)

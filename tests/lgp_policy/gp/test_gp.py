@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from lgp_policy.gp.exact import GaussianProcess
+from lgp_policy.gp.exact import GaussianProcess, _StackedLML, fit_shared_hyperparameters
 from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
-from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
+from lgp_policy.gp.kernels import Exponential, SquaredExponential, WhiteNoise
 from lgp_policy.gp.local import LocalGP
 
 
@@ -246,3 +246,64 @@ def test_estimators_follow_the_scikit_learn_contract():
     assert gp.kernel.k1.length_scale == 0.3 and gp.n_restarts == 1
     with pytest.raises(ValueError, match="Invalid parameter 'nope'"):
         gp.set_params(nope=1)
+
+
+@pytest.mark.parametrize(
+    "kernel, per_sample_noise",
+    [
+        (SquaredExponential(1.0, 0.3) + WhiteNoise(0.1), False),
+        (Exponential(1.0, 0.5), True),  # the z-process: known noise, no WhiteNoise term
+        (SquaredExponential(2.0, 0.2), True),  # the refit of f with R = diag(r(x_i))
+    ],
+)
+def test_stacked_lml_equals_the_sum_of_the_models(kernel, per_sample_noise):
+    """The batched sum of local models' Eq. (4) (padded blocks) is the sum of their _lml,
+    value and gradient, for models of different sizes with and without replicates."""
+    rng = np.random.default_rng(1)
+    gps = []
+    for n, reps in ((30, 5), (17, 0), (25, 12)):
+        x = np.sort(rng.uniform(0.0, 1.0, n))
+        idx = np.concatenate([np.arange(n), np.arange(reps), np.arange(reps)])
+        X = x[idx][:, None]
+        y = np.sin(6.0 * X[:, 0]) + 0.1 * rng.standard_normal(X.shape[0])
+        alpha = np.exp(rng.uniform(-4.0, -1.0, n))[idx] if per_sample_noise else 0.0
+        gps.append(
+            GaussianProcess(kernel, optimizer=None, normalize_y=False, alpha=alpha).fit(X, y)
+        )
+    stacked = _StackedLML.build(gps)
+    assert stacked is not None
+    for shift in (0.0, 0.4, -0.7):
+        theta = kernel.theta + shift
+        value, grad = stacked(theta)
+        parts = [gp._lml(theta, eval_gradient=True) for gp in gps]
+        assert value == pytest.approx(sum(p[0] for p in parts), rel=1e-12, abs=1e-10)
+        np.testing.assert_allclose(grad, np.sum([p[1] for p in parts], axis=0), atol=1e-9)
+
+
+def test_shared_hyperparameters_same_with_and_without_stacking(data, monkeypatch):
+    X, y = data
+    parts = [(X[i::3], y[i::3]) for i in range(3)]
+
+    def learn():
+        gps = [GaussianProcess(_kernel(), optimizer=None).fit(Xp, yp) for Xp, yp in parts]
+        return fit_shared_hyperparameters(gps)
+
+    stacked = learn()
+    monkeypatch.setattr(_StackedLML, "build", classmethod(lambda cls, gps: None))
+    np.testing.assert_allclose(learn(), stacked, atol=1e-5)
+
+
+def test_prepared_gps_learn_the_same_as_fitted_ones(data):
+    """``_prepare`` skips only the factorisation that fit_shared_hyperparameters redoes."""
+    X, y = data
+    parts = [(X[i::3], y[i::3]) for i in range(3)]
+    fitted = [GaussianProcess(_kernel(), optimizer=None).fit(Xp, yp) for Xp, yp in parts]
+    prepared = [GaussianProcess(_kernel(), optimizer=None)._prepare(Xp, yp) for Xp, yp in parts]
+    assert not hasattr(prepared[0], "alpha_")
+    np.testing.assert_allclose(
+        fit_shared_hyperparameters(prepared), fit_shared_hyperparameters(fitted), atol=1e-10
+    )
+    Xs = np.linspace(0.0, 5.0, 7)[:, None]
+    for a, b in zip(prepared, fitted, strict=True):
+        np.testing.assert_allclose(a.predict(Xs, return_std=True), b.predict(Xs, return_std=True))
+        np.testing.assert_allclose(a._latent_mean_at_training(), a._latent_at_training()[0])

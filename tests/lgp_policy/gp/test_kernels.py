@@ -104,3 +104,28 @@ def test_non_positive_hyperparameters_raise(factory, name):
 def test_ard_length_scale_must_match_features(X):
     with pytest.raises(ValueError, match="length_scale"):
         SquaredExponential(1.0, [1.0, 1.0, 1.0])(X)
+
+
+def test_clone_is_independent_and_equal():
+    k = SquaredExponential(2.0, np.array([0.5, 1.5])) + WhiteNoise(0.1)
+    c = k.clone()
+    assert repr(c) == repr(k) and c.get_params(deep=True).keys() == k.get_params(deep=True).keys()
+    c.theta = c.theta + 1.0
+    c.k1.length_scale[0] = 9.0  # an array attribute is copied, not shared
+    np.testing.assert_allclose(k.theta, np.log([2.0, 0.5, 1.5, 0.1]))
+
+
+@pytest.mark.parametrize("n_features", [1, 2])
+def test_cached_distance_forms_equal_the_kernels(n_features):
+    X = np.random.default_rng(0).uniform(0.0, 3.0, (12, n_features))
+    d2 = np.sum((X[:, None, :] - X[None, :, :]) ** 2, axis=2)
+    theta = np.log([1.7, 0.6])
+    for kernel, form, dist in (
+        (SquaredExponential, SquaredExponential.from_sqdist, d2),
+        (Exponential, Exponential.from_dist, np.sqrt(d2)),
+    ):
+        K, G = kernel(1.7, 0.6)(X, eval_gradient=True)
+        K2, G2 = form(theta, dist, True)
+        np.testing.assert_allclose(K2, K, rtol=1e-12)
+        np.testing.assert_allclose(np.stack(G2, axis=2), G, rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(form(theta, dist, False), K, rtol=1e-12)

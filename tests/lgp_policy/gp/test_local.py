@@ -72,6 +72,24 @@ def test_one_heteroscedastic_model_equals_heteroscedastic_gp():
         np.testing.assert_allclose(a, b, atol=1e-6)
 
 
+def test_one_variational_model_equals_heteroscedastic_gp_and_local_models_use_it():
+    """``method`` reaches the local models: one model is the global VHGP; several are
+    calibrated and finite."""
+    X, y = demos(200)
+    Xs = np.linspace(0.0, 10.0, 41)[:, None]
+    one = LocalGP(kernel(), threshold=1e-6, max_points=10**6, method="vhgp", random_state=0)
+    het = HeteroscedasticGP(kernel(), method="vhgp", random_state=0).fit(X, y)
+    for a, b in zip(
+        one.fit(X, y).predict(Xs, return_std=True), het.predict(Xs, return_std=True), strict=True
+    ):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    lgp = LocalGP(kernel(), max_points=20, method="vhgp", random_state=0).fit(X, y)
+    assert len(lgp.models_) > 2 and all(m.method == "vhgp" for m in lgp.models_)
+    mean, std = lgp.predict(Xs, return_std=True)
+    assert np.all(np.isfinite(mean)) and np.all((std > 0) & np.isfinite(std))
+    assert 0.85 <= coverage(lgp, *held_out()) <= 1.0
+
+
 def test_assignment_structure():
     X, y = demos(2000)
     lgp = LocalGP(kernel(), threshold=0.5, max_points=100, local_model="exact").fit(X, y)
@@ -178,6 +196,7 @@ def test_deterministic_and_multi_target():
         ({"combine": "mean"}, "combine"),
         ({"hyperparameters": "global"}, "hyperparameters"),
         ({"order": "random"}, "order"),
+        ({"method": "mcmc"}, "method"),
     ],
 )
 def test_bad_parameters(kwargs, match):
