@@ -147,15 +147,17 @@ def _with_noise_bounds(kernel: Kernel, log_lo: float, log_hi: float) -> Kernel:
     return out
 
 
-def _fit_z(make, zk: Kernel, U, z, var) -> GaussianProcess:
+def _fit_z(make, zk: Kernel, U, z, var, prepare: bool = False) -> GaussianProcess:
     """The z-process on the distinct inputs ``U`` with known target noise ``var``.
 
     A single distinct input is given as two exact replicates of twice the noise (the same
     information), since a GP needs two samples; the replicates are collapsed exactly.
     """
     if U.shape[0] == 1:
-        return make(zk, alpha=np.repeat(2.0 * var, 2)).fit(np.repeat(U, 2, axis=0), np.repeat(z, 2))
-    return make(zk, alpha=var).fit(U, z)
+        gp = make(zk, alpha=np.repeat(2.0 * var, 2))
+        return (gp._prepare if prepare else gp.fit)(np.repeat(U, 2, axis=0), np.repeat(z, 2))
+    gp = make(zk, alpha=var)
+    return (gp._prepare if prepare else gp.fit)(U, z)
 
 
 def _signal_length_scale(kernel: Kernel) -> float:
@@ -259,9 +261,11 @@ def most_likely_em(
 
     # Step 1: homoscedastic GP G1, its noise kept within the bounds.
     kernel = _with_noise_bounds(kernel, lo, hi)
-    gps = [make(kernel).fit(X, y) for X, y in datasets]
     if learn:
+        gps = [make(kernel)._prepare(X, y) for X, y in datasets]
         fit_shared_hyperparameters(gps, random_state=rng, **opt)
+    else:
+        gps = [make(kernel).fit(X, y) for X, y in datasets]
     homoscedastic_kernel = gps[0].kernel_.clone()
     groups = []  # the GP's own distinct inputs (its solve is on them): X, inverse, counts, bias
     for gp in gps:
@@ -310,19 +314,21 @@ def most_likely_em(
         else:
             off = float(noise_offset)
         noise_gps = [
-            _fit_z(make, zk, g[0], z - off, _log_mean_chi2_var(g[2]))
+            _fit_z(make, zk, g[0], z - off, _log_mean_chi2_var(g[2]), prepare=learn)
             for g, z in zip(groups, targets, strict=True)
         ]
         if learn:
             fit_shared_hyperparameters(noise_gps, random_state=rng, **opt)
             zk = noise_gps[0].kernel_.clone()
         new_log_r = [  # z at the training inputs (the z-process's own, distinct inputs)
-            np.clip(zgp._latent_at_training()[0][:, 0][g[1]] + off, lo, hi)
+            np.clip(zgp._latent_mean_at_training()[:, 0][g[1]] + off, lo, hi)
             for zgp, g in zip(noise_gps, groups, strict=True)
         ]
         # Step 4: GP with R = diag(r(x_i)), Eq. (5).
         gps = [
-            make(sig, alpha=np.exp(lr)).fit(X, y)
+            (make(sig, alpha=np.exp(lr))._prepare if learn else make(sig, alpha=np.exp(lr)).fit)(
+                X, y
+            )
             for lr, (X, y) in zip(new_log_r, datasets, strict=True)
         ]
         if learn:
