@@ -247,13 +247,20 @@ def code_version() -> str:
     import subprocess
 
     try:
-        run = {"cwd": ROOT, "capture_output": True, "text": True, "timeout": 60, "check": True}
-        commit = subprocess.run(
-            ["git", "log", "-1", "--format=%h", "--", *MEASURED_CODE], **run
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no", "--", *MEASURED_CODE], **run
-        ).stdout.strip()
+
+        def git(*args: str) -> str:
+            done = subprocess.run(
+                ["git", *args, "--", *MEASURED_CODE],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=True,
+            )
+            return done.stdout.strip()
+
+        commit = git("log", "-1", "--format=%h")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     if not commit:
@@ -373,7 +380,7 @@ def run_unit(unit: Unit, out: Path, workers: int, code: str = "unknown") -> list
             env_kwargs=PERTURBATIONS[pert],
         )
         n_new = int(res["n_episodes"])
-        row = {
+        row: dict[str, Any] = {
             **base,
             "status": "ok",
             "episodes": n_new,
@@ -713,7 +720,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 
     out: Path = args.out
     rows = load_results(out) if (args.resume or args.report) else {}
-    meta = {
+    meta: dict[str, Any] = {
         "command": "python benchmarks/lfd_success.py "
         + " ".join(a for a in (argv if argv is not None else sys.argv[1:])),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
