@@ -560,12 +560,16 @@ def markdown(aggs: Sequence[Mapping[str, Any]], meta: Mapping[str, Any]) -> str:
             "Success % [95% Wilson interval] pooled over the draws; the range of the per-draw "
             "rates; (episodes = draws x layouts)."
         )
-        lines += ["", "| method | " + " | ".join(f"{n} demos" for n in ns) + " |"]
+        header = " | ".join(f"{n} demo{'s' if n > 1 else ''}" for n in ns)
+        lines += ["", f"| method | {header} |"]
         lines.append("|---|" + "---|" * len(ns))
         for m in rows_m:
             cells_m = []
             for n in ns:
                 a = by.get((m, lv, "none", n))
+                if a is None and m in SINGLE_DEMO_METHODS and n > 1:
+                    cells_m.append("(uses 1 demo)")
+                    continue
                 text = _cell_text(a)
                 if a is not None and a["status"] == "ok":
                     text += f" ({len(a['draws'])} x {'/'.join(map(str, a['episodes_per_draw']))})"
