@@ -395,7 +395,7 @@ def run_unit(unit: Unit, out: Path, workers: int, code: str = "unknown") -> list
             row.update(
                 episodes=n_all,
                 successes={k: row["successes"][k] + old["successes"][k] for k in STAGE_KEYS},
-                failed_seeds=sorted(set(old.get("failed_seeds", [])) | set(row["failed_seeds"])),
+                failed_seeds=sorted({*old.get("failed_seeds", []), *row["failed_seeds"]}),
                 episode_length_mean=(
                     first * old["episode_length_mean"] + n_new * row["episode_length_mean"]
                 )
@@ -403,6 +403,8 @@ def run_unit(unit: Unit, out: Path, workers: int, code: str = "unknown") -> list
                 eval_cpu_s=round(old["eval_cpu_s"] + row["eval_cpu_s"], 2),
                 extended_from=first,
             )
+            if "failed_seeds" not in old:  # a row from before the field: not known in full
+                del row["failed_seeds"]
         rows.append(row)
     return rows
 
