@@ -25,7 +25,8 @@ layouts of one level under one perturbation:
 * evaluation layouts: ``evaluate_policy_stages(seed=0)``, i.e. seeds ``10000 ...``, the same for
   every cell (paired comparison) and disjoint from every demonstration seed (checked).
 
-The plan (``plan``) measures the issue's targets with many episodes and covers the rest cheaply:
+The plan (``plan``, ``--part``) measures the issue's targets with many episodes and covers the
+rest cheaply:
 
 ==========  ================================================================  ===========
 part        cells                                                             episodes
@@ -34,16 +35,17 @@ targets     hard, none: ``gp`` n = 8 and ``objrel``, 3 draws                   3
             easy, none: ``gp`` n = 4, 5 draws                                  30 / draw
             easy, cup push and 5 mm noise: ``gp`` n = 4, 3 draws                30 / draw
 coverage    every level, every perturbation: every method at n = 4, 3 draws    10 / draw
-            every level, none: every method, n = 1, 2, 4, 8, 3 draws            10 / draw
+sweep       every level, none: every method, n = 1, 2, 4, 8, 3 draws            10 / draw
 ==========  ================================================================  ===========
 
-Cells of the two parts that coincide are run once, with the larger number of episodes. Each
-result row gives the success over all draws pooled with a 95% Wilson interval
+Cells that two parts plan are run once, with the larger number of episodes. Each result row
+gives the success over all draws pooled with a 95% Wilson interval
 (``scipy.stats.binomtest(...).proportion_ci(method="wilson")``), the range of the per-draw rates
 (the spread between demonstration sets), the per-stage rates and the CPU seconds spent fitting
-and evaluating. ``--out DIR`` gets ``results.json`` (every cell, written after each one, so
-``--resume`` continues) and ``results.md`` (the tables, including the headline table of the
-README). BLAS is pinned to one thread; ``--jobs`` runs fit-and-evaluate units in that many
+and evaluating. ``--out DIR`` gets ``results.json`` (every cell, written after each one, with
+the commit of the measured code; ``--resume`` skips finished cells and continues a cell of the
+same committed code on its missing layouts only) and ``results.md`` (the tables: methods x
+demonstrations per level, the README's headline, levels x perturbations, the targets). BLAS is pinned to one thread; ``--jobs`` runs fit-and-evaluate units in that many
 processes (on a loaded 2-core machine, 1 or 2).
 """
 
@@ -54,7 +56,6 @@ import json
 import os
 import resource
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -411,15 +412,11 @@ def run_unit(unit: Unit, out: Path, workers: int, code: str = "unknown") -> list
 
 # ------------------------------------------------------------------------------------ results
 def _atomic_write(path: Path, text: str) -> None:
+    """Replace ``path`` atomically (the project's one file helper, ``lgp_policy._io``)."""
+    from lgp_policy._io import atomic_write_text
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, text, force=True)
 
 
 def load_results(out: Path) -> dict[str, dict[str, Any]]:
