@@ -45,8 +45,9 @@ gives the success over all draws pooled with a 95% Wilson interval
 and evaluating. ``--out DIR`` gets ``results.json`` (every cell, written after each one, with
 the commit of the measured code; ``--resume`` skips finished cells and continues a cell of the
 same committed code on its missing layouts only) and ``results.md`` (the tables: methods x
-demonstrations per level, the README's headline, levels x perturbations, the targets). BLAS is pinned to one thread; ``--jobs`` runs fit-and-evaluate units in that many
-processes (on a loaded 2-core machine, 1 or 2).
+demonstrations per level, the README's headline, levels x perturbations, the targets). BLAS is
+pinned to one thread; ``--jobs`` runs fit-and-evaluate units in that many processes (on a
+loaded 2-core machine, 1 or 2).
 """
 
 from __future__ import annotations
