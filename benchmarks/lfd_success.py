@@ -25,7 +25,8 @@ layouts of one level under one perturbation:
 * evaluation layouts: ``evaluate_policy_stages(seed=0)``, i.e. seeds ``10000 ...``, the same for
   every cell (paired comparison) and disjoint from every demonstration seed (checked).
 
-The plan (``plan``) measures the issue's targets with many episodes and covers the rest cheaply:
+The plan (``plan``, ``--part``) measures the issue's targets with many episodes and covers the
+rest cheaply:
 
 ==========  ================================================================  ===========
 part        cells                                                             episodes
@@ -34,17 +35,19 @@ targets     hard, none: ``gp`` n = 8 and ``objrel``, 3 draws                   3
             easy, none: ``gp`` n = 4, 5 draws                                  30 / draw
             easy, cup push and 5 mm noise: ``gp`` n = 4, 3 draws                30 / draw
 coverage    every level, every perturbation: every method at n = 4, 3 draws    10 / draw
-            every level, none: every method, n = 1, 2, 4, 8, 3 draws            10 / draw
+sweep       every level, none: every method, n = 1, 2, 4, 8, 3 draws            10 / draw
 ==========  ================================================================  ===========
 
-Cells of the two parts that coincide are run once, with the larger number of episodes. Each
-result row gives the success over all draws pooled with a 95% Wilson interval
+Cells that two parts plan are run once, with the larger number of episodes. Each result row
+gives the success over all draws pooled with a 95% Wilson interval
 (``scipy.stats.binomtest(...).proportion_ci(method="wilson")``), the range of the per-draw rates
 (the spread between demonstration sets), the per-stage rates and the CPU seconds spent fitting
-and evaluating. ``--out DIR`` gets ``results.json`` (every cell, written after each one, so
-``--resume`` continues) and ``results.md`` (the tables, including the headline table of the
-README). BLAS is pinned to one thread; ``--jobs`` runs fit-and-evaluate units in that many
-processes (on a loaded 2-core machine, 1 or 2).
+and evaluating. ``--out DIR`` gets ``results.json`` (every cell, written after each one, with
+the commit of the measured code; ``--resume`` skips finished cells and continues a cell of the
+same committed code on its missing layouts only) and ``results.md`` (the tables: methods x
+demonstrations per level, the README's headline, levels x perturbations, the targets). BLAS is
+pinned to one thread; ``--jobs`` runs fit-and-evaluate units in that many processes (on a
+loaded 2-core machine, 1 or 2).
 """
 
 from __future__ import annotations
@@ -54,7 +57,6 @@ import json
 import os
 import resource
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -67,6 +69,16 @@ import numpy as np
 
 import gym_coffee
 
+ROOT = Path(__file__).resolve().parents[1]
+MEASURED_CODE = (
+    "gym_coffee",
+    "lgp_policy",
+    ":(exclude)lgp_policy/app",
+    "lgp_policy/app/evaluation.py",
+    "lgp_policy/app/backends.py",
+)
+"""Git pathspec of the code a cell measures (the env, the teacher, the policies, the episode
+loop); its last commit is each row's ``code``, with ``+dirty`` for uncommitted changes there."""
 DRAW_SEED_STRIDE = 1000
 """Draw ``k`` records demonstrations from seed ``DRAW_SEED_STRIDE * (k + 1)`` on."""
 EVAL_SEED = 0
@@ -155,29 +167,39 @@ class Unit:
     n_demos: int
     draw: int
     episodes: dict[str, int] = field(default_factory=dict)
+    extend: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Perturbation -> a finished row of the same code: only its missing layouts are run."""
 
 
 # ---------------------------------------------------------------------------------------- plan
+PARTS = ("targets", "coverage", "sweep")
+
+
 def plan(
     *,
     quick: bool,
     methods: Sequence[str],
     level_names: Sequence[str],
     perturbations: Sequence[str],
-    targets: bool = True,
-    coverage: bool = True,
+    parts: Sequence[str] = PARTS,
     target_episodes: int = TARGET_EPISODES,
     coverage_episodes: int = COVERAGE_EPISODES,
+    draws: int = COVERAGE_DRAWS,
 ) -> dict[Cell, int]:
-    """Cells to run and their episodes (targets first, in insertion order)."""
+    """Cells to run and their episodes per draw (in the order of ``PARTS``).
+
+    ``targets``: the issue's targets (fixed draws, ``target_episodes``); ``coverage``: every
+    method, level and perturbation at n = 4; ``sweep``: every method and level without
+    perturbation at n = 1, 2, 4, 8. Both with ``draws`` draws and ``coverage_episodes``.
+    """
     cells: dict[Cell, int] = {}
 
-    def add(method: str, level: str, pert: str, n: int, draws: Iterable[int], eps: int) -> None:
+    def add(method: str, level: str, pert: str, n: int, draw_ids: Iterable[int], eps: int) -> None:
         if method not in methods or level not in level_names or pert not in perturbations:
             return
         if method in SINGLE_DEMO_METHODS:
             n = 1
-        for k in draws:
+        for k in draw_ids:
             c = Cell(method, level, pert, n, k)
             cells[c] = max(cells.get(c, 0), eps)
 
@@ -185,34 +207,82 @@ def plan(
         for m in methods:
             add(m, level_names[0], "none", 2, range(COVERAGE_DRAWS), 2)
         return cells
-    if targets:
+    if "targets" in parts:
         t = target_episodes
         add("gp", "hard", "none", 8, range(3), t)
         add("objrel", "hard", "none", 1, range(3), t)
         add("gp", "easy", "none", 4, range(5), t)
         add("gp", "easy", "cup_push", 4, range(3), t)
         add("gp", "easy", "obs_noise_5mm", 4, range(3), t)
-    if coverage:
-        c = coverage_episodes
-        for level in level_names:  # every method and perturbation at n = 4 first
+    c = coverage_episodes
+    if "coverage" in parts:
+        for level in level_names:
             for pert in perturbations:
                 for m in methods:
-                    add(m, level, pert, 4, range(COVERAGE_DRAWS), c)
+                    add(m, level, pert, 4, range(draws), c)
+    if "sweep" in parts:
         for level in level_names:
             for n in N_DEMOS:
                 for m in methods:
-                    add(m, level, "none", n, range(COVERAGE_DRAWS), c)
+                    add(m, level, "none", n, range(draws), c)
     return cells
 
 
-def units(cells: Mapping[Cell, int]) -> list[Unit]:
-    """Group cells sharing one fit, in the order of their first cell."""
+def units(
+    cells: Mapping[Cell, int], extend: Mapping[Cell, dict[str, Any]] | None = None
+) -> list[Unit]:
+    """Group cells sharing one fit, in the order of their first cell; ``extend``: finished rows
+    that the cells continue (their layouts are not run again)."""
     out: dict[tuple[str, str, int, int], Unit] = {}
     for c, eps in cells.items():
         key = (c.method, c.level, c.n_demos, c.draw)
         unit = out.setdefault(key, Unit(c.method, c.level, c.n_demos, c.draw))
         unit.episodes[c.perturbation] = eps
+        if extend and c in extend:
+            unit.extend[c.perturbation] = extend[c]
     return list(out.values())
+
+
+def code_version() -> str:
+    """The last commit of :data:`MEASURED_CODE` (``+dirty`` with uncommitted changes there), or
+    ``"unknown"`` outside a git checkout."""
+    import subprocess
+
+    try:
+
+        def git(*args: str) -> str:
+            done = subprocess.run(
+                ["git", *args, "--", *MEASURED_CODE],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=True,
+            )
+            return done.stdout.strip()
+
+        commit = git("log", "-1", "--format=%h")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if not commit:
+        return "unknown"
+    return commit + ("+dirty" if dirty else "")
+
+
+def can_extend(row: Mapping[str, Any] | None, code: str) -> bool:
+    """Whether a finished row can be continued by running only its missing layouts: measured
+    on the same committed code (a fit is deterministic given the demonstrations)."""
+    from lgp_policy.app.evaluation import EVAL_SEED_OFFSET
+
+    return (
+        row is not None
+        and row.get("status") == "ok"
+        and row.get("code") == code
+        and "unknown" not in code
+        and "dirty" not in code
+        and row.get("eval_seeds", [None])[0] == EVAL_SEED_OFFSET + EVAL_SEED
+    )
 
 
 # --------------------------------------------------------------------------------------- demos
@@ -262,8 +332,9 @@ def env_accepts(env_id: str, kwargs: Mapping[str, Any]) -> str | None:
     return None
 
 
-def run_unit(unit: Unit, out: Path, workers: int) -> list[dict[str, Any]]:
-    """Fit one policy and evaluate it under each of the unit's perturbations."""
+def run_unit(unit: Unit, out: Path, workers: int, code: str = "unknown") -> list[dict[str, Any]]:
+    """Fit one policy and evaluate it under each of the unit's perturbations (for a row in
+    ``unit.extend``, only on the layouts it lacks, and add them to it)."""
     from threadpoolctl import threadpool_limits
 
     from lgp_policy.app.evaluation import EVAL_SEED_OFFSET, evaluate_policy_stages
@@ -286,50 +357,67 @@ def run_unit(unit: Unit, out: Path, workers: int) -> list[dict[str, Any]]:
             "n_demos": unit.n_demos,
             "draw": unit.draw,
             "demo_seeds": demo_seeds,
+            "code": code,
             "fit_cpu_s": round(fit_cpu, 2),
         }
         why = env_accepts(env_id, PERTURBATIONS[pert])
         if why is not None:
             rows.append({**base, "status": f"unavailable ({why})"})
             continue
+        old = unit.extend.get(pert)
+        if old is not None and old["demo_seeds"] != demo_seeds:
+            raise RuntimeError(f"{_row_key(old)}: its demonstrations changed; run it anew")
+        first = 0 if old is None else int(old["episodes"])
         eval_seeds = [EVAL_SEED_OFFSET + EVAL_SEED + i for i in range(eps)]
         if set(eval_seeds) & set(demo_seeds) or min(eval_seeds) <= max(demo_seeds):
             raise RuntimeError("evaluation layouts overlap the demonstration seeds")
         t0 = _cpu()
         res = evaluate_policy_stages(
             policy,
-            eps,
-            seed=EVAL_SEED,
+            eps - first,
+            seed=EVAL_SEED + first,
             workers=workers,
             progress=False,
             env_id=env_id,
             env_kwargs=PERTURBATIONS[pert],
         )
-        rows.append(
-            {
-                **base,
-                "status": "ok",
-                "episodes": res["n_episodes"],
-                "eval_seeds": [min(eval_seeds), max(eval_seeds)],
-                "successes": {k: int(res["stages"][k]["successes"]) for k in STAGE_KEYS},
-                "episode_length_mean": res["episode_length"]["mean"],
-                "eval_cpu_s": round(_cpu() - t0, 2),
-            }
-        )
+        n_new = int(res["n_episodes"])
+        row: dict[str, Any] = {
+            **base,
+            "status": "ok",
+            "episodes": n_new,
+            "eval_seeds": [min(eval_seeds), max(eval_seeds)],
+            "successes": {k: int(res["stages"][k]["successes"]) for k in STAGE_KEYS},
+            "failed_seeds": [int(e["seed"]) for e in res["episodes"] if not e["is_success"]],
+            "episode_length_mean": float(res["episode_length"]["mean"]),
+            "eval_cpu_s": round(_cpu() - t0, 2),
+        }
+        if old is not None:  # the same policy on the earlier layouts: add them up
+            n_all = first + n_new
+            row.update(
+                episodes=n_all,
+                successes={k: row["successes"][k] + old["successes"][k] for k in STAGE_KEYS},
+                failed_seeds=sorted({*old.get("failed_seeds", []), *row["failed_seeds"]}),
+                episode_length_mean=(
+                    first * old["episode_length_mean"] + n_new * row["episode_length_mean"]
+                )
+                / n_all,
+                eval_cpu_s=round(old["eval_cpu_s"] + row["eval_cpu_s"], 2),
+                extended_from=first,
+            )
+            if "failed_seeds" not in old:  # a row from before the field: not known in full
+                del row["failed_seeds"]
+        rows.append(row)
     return rows
 
 
 # ------------------------------------------------------------------------------------ results
 def _atomic_write(path: Path, text: str) -> None:
+    """Replace ``path`` atomically (the project's one file helper, ``lgp_policy._io``)."""
+    from lgp_policy._io import atomic_write_text
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, text, force=True)
 
 
 def load_results(out: Path) -> dict[str, dict[str, Any]]:
@@ -459,7 +547,36 @@ def markdown(aggs: Sequence[Mapping[str, Any]], meta: Mapping[str, Any]) -> str:
     ]
     levels_run = sorted({a["level"] for a in aggs}, key=lambda x: (x != "easy", x))
     perts_run = [p for p in PERTURBATIONS if any(a["perturbation"] == p for a in aggs)]
-    # Headline: methods at their main n, every level x perturbation.
+    # Headline: methods x number of demonstrations, per level, without perturbation.
+    for lv in levels_run:
+        ns = sorted(
+            {a["n_demos"] for a in aggs if a["level"] == lv and a["perturbation"] == "none"}
+        )
+        if len(ns) < 2:
+            continue
+        rows_m = [m for m in METHODS if any((m, lv, "none", n) in by for n in ns)]
+        lines += [f"## Demonstrations: {lv} level, no perturbation", ""]
+        lines.append(
+            "Success % [95% Wilson interval] pooled over the draws; the range of the per-draw "
+            "rates; (episodes = draws x layouts)."
+        )
+        header = " | ".join(f"{n} demo{'s' if n > 1 else ''}" for n in ns)
+        lines += ["", f"| method | {header} |"]
+        lines.append("|---|" + "---|" * len(ns))
+        for m in rows_m:
+            cells_m = []
+            for n in ns:
+                a = by.get((m, lv, "none", n))
+                if a is None and m in SINGLE_DEMO_METHODS and n > 1:
+                    cells_m.append("(uses 1 demo)")
+                    continue
+                text = _cell_text(a)
+                if a is not None and a["status"] == "ok":
+                    text += f" ({len(a['draws'])} x {'/'.join(map(str, a['episodes_per_draw']))})"
+                cells_m.append(text)
+            lines.append(f"| {m} | " + " | ".join(cells_m) + " |")
+        lines.append("")
+    # Methods at their main n, every level x perturbation.
     head_rows = []
     for m in MAIN_METHODS:
         ns = sorted({a["n_demos"] for a in aggs if a["method"] == m})
@@ -467,7 +584,7 @@ def markdown(aggs: Sequence[Mapping[str, Any]], meta: Mapping[str, Any]) -> str:
         head_rows += [(m, n) for n in (wanted or ns[-1:])]
     cols = [(lv, p) for lv in levels_run for p in perts_run]
     cols = [c for c in cols if any((m, *c, n) in by for m, n in head_rows)]
-    lines += ["## Headline", ""]
+    lines += ["## Levels and perturbations", ""]
     lines.append(
         "| method | demos | "
         + " | ".join(f"{lv}: {PERTURBATION_LABELS[p]}" for lv, p in cols)
@@ -545,16 +662,21 @@ def write_results(out: Path, rows: Mapping[str, Mapping[str, Any]], meta: dict[s
 
 
 # --------------------------------------------------------------------------------------- main
-def _run_one(args: tuple[Unit, str, int]) -> list[dict[str, Any]]:
-    unit, out, workers = args
-    return run_unit(unit, Path(out), workers)
+def _run_one(args: tuple[Unit, str, int, str]) -> list[dict[str, Any]]:
+    unit, out, workers, code = args
+    return run_unit(unit, Path(out), workers, code)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--out", type=Path, required=True, help="directory for results.json/.md")
     ap.add_argument("--quick", action="store_true", help="smoke run: n = 2, 2 episodes per draw")
-    ap.add_argument("--resume", action="store_true", help="skip cells already in results.json")
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="skip cells already in results.json; a cell with fewer episodes than planned runs "
+        "only its missing layouts if it was measured on the same committed code (else anew)",
+    )
     ap.add_argument("--report", action="store_true", help="only rewrite results.md from the JSON")
     ap.add_argument(
         "--merge",
@@ -567,7 +689,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--methods", default=",".join(MAIN_METHODS), help="comma-separated")
     ap.add_argument("--levels", default=None, help="comma-separated (default: every level)")
     ap.add_argument("--perturbations", default=",".join(PERTURBATIONS), help="comma-separated")
-    ap.add_argument("--part", choices=("all", "targets", "coverage"), default="all")
+    ap.add_argument(
+        "--part",
+        choices=("all", *PARTS),
+        default="all",
+        help="targets: the issue's targets; coverage: every perturbation at n = 4; sweep: "
+        "n = 1, 2, 4, 8 without perturbation",
+    )
+    ap.add_argument(
+        "--draws", type=int, default=COVERAGE_DRAWS, help="demonstration draws (coverage, sweep)"
+    )
     ap.add_argument("--target-episodes", type=int, default=TARGET_EPISODES, help="per draw")
     ap.add_argument("--coverage-episodes", type=int, default=COVERAGE_EPISODES, help="per draw")
     ap.add_argument("--jobs", type=int, default=1, help="processes running fit+evaluate units")
@@ -586,16 +717,19 @@ def main(argv: Sequence[str] | None = None) -> None:
     level_names = list(known_levels) if args.levels is None else args.levels.split(",")
     if set(level_names) - set(known_levels):
         ap.error(f"--levels: this gym_coffee has {list(known_levels)}")
-    if min(args.jobs, args.workers, args.target_episodes, args.coverage_episodes) < 1:
-        ap.error("--jobs, --workers, --target-episodes and --coverage-episodes must be >= 1")
+    if min(args.jobs, args.workers, args.target_episodes, args.coverage_episodes, args.draws) < 1:
+        ap.error(
+            "--jobs, --workers, --target-episodes, --coverage-episodes and --draws must be >= 1"
+        )
 
     out: Path = args.out
     rows = load_results(out) if (args.resume or args.report) else {}
-    meta = {
+    meta: dict[str, Any] = {
         "command": "python benchmarks/lfd_success.py "
         + " ".join(a for a in (argv if argv is not None else sys.argv[1:])),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "levels": known_levels,
+        "code": code_version(),
     }
     saved = out / "results.json"
     old_meta = json.loads(saved.read_text()).get("meta", {}) if rows and saved.exists() else {}
@@ -615,18 +749,21 @@ def main(argv: Sequence[str] | None = None) -> None:
         methods=methods,
         level_names=level_names,
         perturbations=perts,
-        targets=args.part in ("all", "targets"),
-        coverage=args.part in ("all", "coverage"),
+        parts=PARTS if args.part == "all" else (args.part,),
         target_episodes=args.target_episodes,
         coverage_episodes=args.coverage_episodes,
+        draws=args.draws,
     )
     todo = {c: e for c, e in cells.items() if rows.get(c.key, {}).get("episodes", -1) < e}
+    extend = {c: rows[c.key] for c in todo if can_extend(rows.get(c.key), meta["code"])}
     if "hard" not in known_levels:
         print("note: this gym_coffee has no hard level; its cells are skipped")
-    work = units(todo)[: args.max_units]
+    work = units(todo, extend)[: args.max_units]
+    n_eps = sum(e - (extend[c]["episodes"] if c in extend else 0) for c, e in todo.items())
     print(
-        f"{len(cells)} cells planned, {len(todo)} to run in {len(work)} fit units "
-        f"({sum(todo.values())} episodes); writing {out}/results.json",
+        f"{len(cells)} cells planned, {len(todo)} to run ({len(extend)} of them continued) in "
+        f"{len(work)} fit units ({n_eps} episodes); code {meta['code']}; writing "
+        f"{out}/results.json",
         flush=True,
     )
 
@@ -645,7 +782,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 print(f"{_row_key(r)}: {r['status']}", flush=True)
         write_results(out, rows, meta)
 
-    jobs = [(u, str(out), args.workers) for u in work]
+    jobs = [(u, str(out), args.workers, str(meta["code"])) for u in work]
     if args.jobs == 1:
         for job in jobs:
             done(job[0], _run_one(job))

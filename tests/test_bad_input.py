@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+import gym_coffee
 from lgp_policy.app.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -265,6 +266,16 @@ cli(
     "record --out {tmp}/d.npz --env-id CartPole-v1",
     "argument --env-id: expected one of",
 )
+cli(
+    "record-level",
+    "record --out {tmp}/d.npz --level medium",
+    "argument --level: invalid choice: 'medium'",
+)
+cli(
+    "record-level-and-env-id",
+    f"record --out {{tmp}}/d.npz --level hard --env-id {gym_coffee.ENV_ID}",
+    "argument --env-id: not allowed with argument --level",
+)
 cli("fit-demos-missing", "fit {tmp}/nothere.npz --out {tmp}/p.npz", "argument demos: no such file")
 cli("fit-demos-folder", "fit {folder.npz} --out {tmp}/p.npz", "is not a file")
 cli(
@@ -298,6 +309,23 @@ for value in ("nan", "inf", "-inf", "-0.1", "2", "half"):
         "argument --alpha",
     )
 cli("evaluate-policy-missing", "evaluate {tmp}/nothere.npz", "argument policy: no such file")
+cli("evaluate-level", "evaluate {policy} --level expert", "argument --level: invalid choice")
+cli("evaluate-level-empty", "evaluate {policy} --level ''", "argument --level: invalid choice")
+cli(
+    "evaluate-env-id",
+    "evaluate {policy} --env-id CartPole-v1",
+    "argument --env-id: expected one of",
+)
+cli(
+    "evaluate-env-id-level-name",
+    "evaluate {policy} --env-id hard",
+    "argument --env-id: expected one of",
+)
+cli(
+    "evaluate-level-and-env-id",
+    f"evaluate {{policy}} --env-id {gym_coffee.ENV_ID} --level easy",
+    "argument --level: not allowed with argument --env-id",
+)
 cli("evaluate-policy-folder", "evaluate {folder.npz}", "is not a file")
 cli("evaluate-policy-suffix", "evaluate {existing.json}", "expected a .npz file")
 for value in ("0", "-1", "ten", "1e3"):

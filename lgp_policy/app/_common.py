@@ -23,6 +23,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, NoReturn
 
+import gym_coffee
 from lgp_policy._io import check_output_path
 
 __all__ = [
@@ -33,12 +34,15 @@ __all__ = [
     "MAX_SEED",
     "ArgumentParser",
     "UsageError",
+    "add_env_options",
     "add_force_option",
+    "check_env_id",
     "check_output",
     "check_output_folder",
     "check_seed_room",
     "check_video_output",
     "demos_int",
+    "env_id_from_args",
     "finite_float",
     "input_file",
     "int_range",
@@ -147,6 +151,55 @@ def check_seed_room(seed: int, count: int, flag: str, value: int) -> None:
         raise UsageError(
             f"argument --seed: expected at most {MAX_SEED - count} with {flag} {value}, got {seed}"
         )
+
+
+# ------------------------------------------------------------------ environment: level or id
+def check_env_id(env_id: str) -> str:
+    """Raise :class:`UsageError` naming ``--env-id`` unless it is a registered coffee env id
+    (:data:`gym_coffee.ENV_IDS`, one per level)."""
+    if env_id not in gym_coffee.ENV_IDS:
+        raise UsageError(
+            f"argument --env-id: expected one of {list(gym_coffee.ENV_IDS)} (or use --level "
+            f"{'/'.join(gym_coffee.LEVELS)}), got {env_id!r}"
+        )
+    return env_id
+
+
+def add_env_options(p: argparse.ArgumentParser, what: str = "the layouts") -> None:
+    """Add ``--level`` (a name of :data:`gym_coffee.LEVELS`) and ``--env-id`` (a registered id),
+    mutually exclusive; read them with :func:`env_id_from_args`."""
+    g = p.add_mutually_exclusive_group()
+    levels = ", ".join(f"{name}: {env_id}" for name, env_id in gym_coffee.LEVELS.items())
+    g.add_argument(
+        "--level",
+        choices=list(gym_coffee.LEVELS),
+        default=None,
+        help=f"difficulty level of {what} ({levels}; default {_default_level()})",
+    )
+    g.add_argument(
+        "--env-id",
+        default=None,
+        metavar="ID",
+        help=f"registered env id of {what}, instead of --level (default {gym_coffee.ENV_ID})",
+    )
+
+
+def _default_level() -> str:
+    return next(name for name, env_id in gym_coffee.LEVELS.items() if env_id == gym_coffee.ENV_ID)
+
+
+def env_id_from_args(args: argparse.Namespace) -> str:
+    """The env id chosen with :func:`add_env_options` (``--level`` through
+    :data:`gym_coffee.LEVELS`, a checked ``--env-id``, or :data:`gym_coffee.ENV_ID`).
+
+    Raises:
+        UsageError: ``--env-id`` is not a registered coffee env id.
+    """
+    level = getattr(args, "level", None)
+    if level is not None:
+        return gym_coffee.LEVELS[level]
+    env_id = getattr(args, "env_id", None)
+    return gym_coffee.ENV_ID if env_id is None else check_env_id(env_id)
 
 
 # ------------------------------------------------------------- outputs: one overwrite rule

@@ -5,6 +5,7 @@ The single entry point of the application layer: ``record`` lives here; ``fit``,
 
 Example:
     $ gym-coffee record --n 4 --out demos.npz --seed 0 --video demo.mp4
+    $ gym-coffee record --n 8 --out hard.npz --level hard
 """
 
 from __future__ import annotations
@@ -14,15 +15,16 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import gym_coffee
 from lgp_policy.app._common import (
     ArgumentParser,
     UsageError,
+    add_env_options,
     add_force_option,
     check_output,
     check_seed_room,
     check_video_output,
     demos_int,
+    env_id_from_args,
     run_command,
     seed_int,
 )
@@ -30,21 +32,6 @@ from lgp_policy.app.commands import add_subcommands
 
 if TYPE_CHECKING:
     from gym_coffee.demonstrations import Demonstration
-
-
-def coffee_env_ids() -> list[str]:
-    """The registered ``gym_coffee`` environment ids (every level)."""
-    from gymnasium.envs.registration import registry
-
-    return sorted(i for i in registry if i.startswith("gym_coffee/"))
-
-
-def check_env_id(env_id: str) -> str:
-    """Raise :class:`UsageError` naming ``--env-id`` unless it is a registered coffee env."""
-    known = coffee_env_ids()
-    if env_id not in known:
-        raise UsageError(f"argument --env-id: expected one of {known}, got {env_id!r}")
-    return env_id
 
 
 def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -75,21 +62,22 @@ def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentP
         default=None,
         help="also write a video (.mp4 or .gif) of the first demonstration, replayed",
     )
-    p.add_argument("--env-id", default=gym_coffee.ENV_ID, help="Gymnasium env id")
+    add_env_options(p, "the demonstrations")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=cmd_record)
     return p
 
 
-def check_record(args: argparse.Namespace) -> None:
-    """Every ``record`` argument, before any work."""
-    check_env_id(args.env_id)
+def check_record(args: argparse.Namespace) -> str:
+    """Check every ``record`` argument before any work; return the env id to record on."""
+    env_id = env_id_from_args(args)
     check_seed_room(args.seed, 100 * args.n, "--n", args.n)
     check_output("--out", args.out, force=args.force, suffixes=(".npz",))
     if args.video is not None:
         check_video_output("--video", args.video, force=args.force)
         if args.video.absolute() == args.out.absolute():
             raise UsageError("argument --video: the same file as --out")
+    return env_id
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -97,21 +85,24 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     from gym_coffee.demonstrations import collect_demonstrations
 
-    check_record(args)
-    env = gym.make(args.env_id)
+    env_id = check_record(args)
+    env = gym.make(env_id)
     try:
         demos = collect_demonstrations(env, n=args.n, seed=args.seed, progress=not args.no_progress)
     finally:
         env.close()
     demos.save(args.out, overwrite=args.force)
     n_steps = sum(d.n_steps for d in demos)
-    print(f"saved {len(demos)} demonstrations (seeds {demos.seeds}, {n_steps} steps) to {args.out}")
+    print(
+        f"saved {len(demos)} demonstrations on {env_id} (seeds {demos.seeds}, {n_steps} steps) "
+        f"to {args.out}"
+    )
     failed = demos.metadata.get("failed_seeds") or []
     if failed:
         print(f"the teacher failed on seeds {failed}; they were skipped")
     if args.video is not None:
         path = record_video(
-            args.env_id, demos[0], args.video, progress=not args.no_progress, overwrite=args.force
+            env_id, demos[0], args.video, progress=not args.no_progress, overwrite=args.force
         )
         print(f"wrote {path}")
     return 0

@@ -2,9 +2,9 @@
 (and ``finetune``, ``teleop``, ``export`` when their modules are importable).
 
 * ``gym-coffee fit DEMOS --out POLICY.npz``: encode recorded demonstrations into a policy file.
-* ``gym-coffee evaluate POLICY --episodes N --seed S [--workers K] [--video out.mp4]
-  [--json out.json] [--backend ray [--address ADDR]]``: per-stage success on held-out layouts
-  with 95% Wilson intervals.
+* ``gym-coffee evaluate POLICY --episodes N --seed S [--level easy|hard | --env-id ID]
+  [--workers K] [--video out.mp4] [--json out.json] [--backend ray [--address ADDR]]``:
+  per-stage success on held-out layouts of one level with 95% Wilson intervals.
 * ``gym-coffee run [--out DIR] [--demos 4] [--episodes 50] [--seed S]``: record demonstrations,
   fit, evaluate, and write the policy, ``results.json``, the figures and a rollout video to DIR.
 
@@ -23,12 +23,14 @@ from typing import Any
 from lgp_policy._io import atomic_write_text
 from lgp_policy.app._common import (
     UsageError,
+    add_env_options,
     add_force_option,
     check_output,
     check_output_folder,
     check_seed_room,
     check_video_output,
     demos_int,
+    env_id_from_args,
     finite_float,
     input_file,
     int_range,
@@ -67,9 +69,11 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         "evaluate",
         help="evaluate a policy on held-out layouts (per-stage success)",
         description="Run a policy on layouts from seeds 10000+S.. (disjoint from demonstration "
-        "seeds) and print per-stage success rates with 95%% Wilson intervals.",
+        "seeds) of one difficulty level and print per-stage success rates with 95%% Wilson "
+        "intervals.",
     )
     p.add_argument("policy", type=input_file(".npz"), help="policy file (GP or residual, .npz)")
+    add_env_options(p, "the evaluation layouts")
     p.add_argument("--episodes", type=episodes_int, default=100, help="layouts (default 100)")
     p.add_argument("--seed", type=seed_int, default=0, help="layout seed offset S (default 0)")
     p.add_argument("--workers", type=workers_int, default=1, help="parallel envs (default 1)")
@@ -181,7 +185,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_evaluate(args: argparse.Namespace) -> None:
+def _check_evaluate(args: argparse.Namespace) -> str:
+    """Check every ``evaluate`` argument before any work; return the env id to evaluate on."""
+    env_id = env_id_from_args(args)
     check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
     outputs = {}
     if args.json is not None:
@@ -198,17 +204,20 @@ def _check_evaluate(args: argparse.Namespace) -> None:
         raise UsageError("argument --address: needs --backend ray")
     if args.backend == "ray" and importlib.util.find_spec("ray") is None:
         raise UsageError("argument --backend: ray is not installed (pip install 'gym-coffee[ray]')")
+    return env_id
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from lgp_policy.app.evaluation import evaluate_policy_stages, format_results
 
-    _check_evaluate(args)
+    env_id = _check_evaluate(args)
     policy = load_policy(args.policy)
+    print(f"evaluating {args.policy} on {env_id}", flush=True)
     result = evaluate_policy_stages(  # the video is rendered during the evaluation itself
         policy,
         args.episodes,
         seed=args.seed,
+        env_id=env_id,
         workers=args.workers,
         video=args.video,
         progress=not args.no_progress,
@@ -217,6 +226,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         chunk_size=args.chunk_size,
         force=args.force,
     )
+    result["env_id"] = env_id
     print(format_results(result))
     if result.get("video"):
         print(f"video: {result['video']}")

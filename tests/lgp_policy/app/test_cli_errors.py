@@ -11,6 +11,7 @@ import json
 
 import pytest
 
+import gym_coffee
 from lgp_policy import _io
 from lgp_policy._io import FileFormatError
 from lgp_policy.app import commands, evaluation, pipeline
@@ -153,7 +154,7 @@ def test_evaluate_json_written_with_force_and_deprecated_alias(
 ):
     path = tmp_path / "results.json"
     assert main(["evaluate", str(policy_file), "--json", str(path)]) == 0
-    assert json.loads(path.read_text()) == fake_evaluation
+    assert json.loads(path.read_text()) == {**fake_evaluation, "env_id": gym_coffee.ENV_ID}
     assert main(["evaluate", str(policy_file), "--json", str(path)]) == 2
     assert main(["evaluate", str(policy_file), "--json", str(path), "--overwrite"]) == 0
     assert "--overwrite is deprecated; use --force" in capsys.readouterr().err
@@ -226,7 +227,9 @@ def test_a_real_sigint_ends_with_one_line_and_130(tmp_path):
         start_new_session=True,
     )
     try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "working"
+        assert proc.stdout is not None
+        printed = [proc.stdout.readline().strip() for _ in range(2)]  # "evaluating ...", then
+        assert printed[0].startswith("evaluating ") and printed[1] == "working", printed
         t0 = time.monotonic()
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=30)

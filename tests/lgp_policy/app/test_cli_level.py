@@ -1,0 +1,65 @@
+"""``--level`` / ``--env-id`` of ``gym-coffee record`` and ``evaluate``: the level's registered id
+(``gym_coffee.LEVELS``) reaches the env, and the choice is recorded in the outputs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import gym_coffee
+from gym_coffee.demonstrations import DemonstrationSet
+from lgp_policy.app import commands, evaluation
+from lgp_policy.app.cli import main
+
+
+@pytest.fixture
+def seen_env_ids(monkeypatch):
+    """Stub the evaluation; collect the ``env_id`` each call was given."""
+    seen: list[str] = []
+
+    def fake_evaluate(policy, n_episodes, *args, env_id=gym_coffee.ENV_ID, **kwargs):
+        seen.append(env_id)
+        return {"n_episodes": n_episodes}
+
+    monkeypatch.setattr(commands, "load_policy", lambda path: object())
+    monkeypatch.setattr(evaluation, "evaluate_policy_stages", fake_evaluate)
+    monkeypatch.setattr(evaluation, "format_results", lambda r: "formatted")
+    return seen
+
+
+@pytest.mark.parametrize(
+    ("options", "level"),
+    [([], "easy"), (["--level", "hard"], "hard"), (["--level", "easy"], "easy")]
+    + [(["--env-id", env_id], name) for name, env_id in gym_coffee.LEVELS.items()],
+)
+def test_evaluate_runs_on_the_chosen_level(options, level, tmp_path, seen_env_ids, capsys):
+    policy = tmp_path / "policy.npz"
+    policy.write_bytes(b"stub")  # never opened: load_policy is stubbed
+    out = tmp_path / "r.json"
+    argv = ["evaluate", str(policy), "--episodes", "2", "--json", str(out), *options]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert seen_env_ids == [gym_coffee.LEVELS[level]]
+    assert f"on {gym_coffee.LEVELS[level]}" in capsys.readouterr().out
+    assert json.loads(out.read_text())["env_id"] == gym_coffee.LEVELS[level]
+
+
+def test_evaluate_help_lists_the_levels(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["evaluate", "--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert "--level" in out and "--env-id" in out
+    for name, env_id in gym_coffee.LEVELS.items():
+        assert name in out and env_id in out
+
+
+def test_record_on_the_hard_level(tmp_path, capsys):
+    """A real recording: the demonstration file says it came from the hard level's env."""
+    out = tmp_path / "hard.npz"
+    argv = ["record", "--n", "1", "--seed", "7", "--out", str(out), "--level", "hard"]
+    assert main([*argv, "--no-progress"]) == 0, capsys.readouterr().err
+    assert f"on {gym_coffee.LEVELS['hard']}" in capsys.readouterr().out
+    demos = DemonstrationSet.load(out)
+    assert demos.metadata["env_id"] == gym_coffee.LEVELS["hard"]
+    assert len(demos) == 1 and demos[0].success
