@@ -372,6 +372,8 @@ cli("run-out-nonempty", "run --out {nonempty}", "is not empty (notes.txt); pass 
 cli("run-demos-0", "run --out {tmp}/r --demos 0", "argument --demos")
 cli("run-episodes-0", "run --out {tmp}/r --episodes 0", "argument --episodes")
 cli("run-workers-0", "run --out {tmp}/r --workers 0", "argument --workers")
+cli("run-level", "run --out {tmp}/r --level expert", "argument --level: invalid choice")
+cli("run-env-id", "run --out {tmp}/r --env-id CartPole-v1", "argument --env-id: expected one of")
 cli("run-seed-negative", "run --out {tmp}/r --seed -1", "argument --seed")
 cli("run-alpha-nan", "run --out {tmp}/r --alpha nan", "argument --alpha")
 cli("run-model", "run --out {tmp}/r --model gp", "argument --model: invalid choice")

@@ -106,6 +106,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=workers_int, default=1, help="parallel envs for evaluation")
     p.add_argument("--no-video", action="store_true", help="skip the rollout video")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    add_env_options(p, "the demonstrations and the evaluation layouts")
     _add_policy_options(p)
     add_force_option(p, "files of an earlier run in --out")
     p.set_defaults(func=cmd_run)
@@ -239,6 +240,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from lgp_policy.app import pipeline
 
+    env_id = env_id_from_args(args)
     stale = check_output_folder("--out", args.out, force=args.force, owned=pipeline.RUN_FILES)
     check_seed_room(args.seed, 100 * args.demos, "--demos", args.demos)
     check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
@@ -254,5 +256,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         video=not args.no_video,
         plots=not args.no_plots,
         policy_kwargs=kwargs,
+        env_id=env_id,
     )
     return 0

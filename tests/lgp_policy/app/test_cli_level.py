@@ -63,3 +63,20 @@ def test_record_on_the_hard_level(tmp_path, capsys):
     demos = DemonstrationSet.load(out)
     assert demos.metadata["env_id"] == gym_coffee.LEVELS["hard"]
     assert len(demos) == 1 and demos[0].success
+
+
+@pytest.mark.parametrize(
+    ("options", "level"),
+    [
+        ([], "easy"),
+        (["--level", "hard"], "hard"),
+        (["--env-id", gym_coffee.LEVELS["hard"]], "hard"),
+    ],
+)
+def test_run_passes_the_chosen_level_to_the_pipeline(options, level, tmp_path, monkeypatch):
+    from lgp_policy.app import pipeline
+
+    seen: list[str | None] = []
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda out, **kw: seen.append(kw["env_id"]))
+    assert main(["run", "--out", str(tmp_path / "r"), *options]) == 0
+    assert seen == [gym_coffee.LEVELS[level]]
