@@ -433,6 +433,9 @@ class GPDemonstrationPolicy:
     reach_tolerance  m; before a demonstrated gripper event the phase waits until the grasp point
                      is this close (or within 3 predicted std) to the target of the tightest frame
                      at that event
+    extrapolate      s; past the end of the demonstrations (an episode the task has not ended
+                     yet) the targets go on along the demonstrations' mean motion over their last
+                     2% of phase for at most this long, then stop; 0 = hold the last targets
     encoder_kwargs   extra arguments for :class:`~lgp_policy.lfd.encoding.DemonstrationEncoder`
     ================ ===================================================================
 
@@ -475,6 +478,7 @@ class GPDemonstrationPolicy:
         frame_noise: float = 0.005,
         max_wait: float = 2.0,
         reach_tolerance: float = 0.01,
+        extrapolate: float = 1.0,
         encoder_kwargs: Mapping[str, Any] | None = None,
     ) -> None:
         self.robot = robot
@@ -517,6 +521,7 @@ class GPDemonstrationPolicy:
         self.frame_noise = _finite("frame_noise", frame_noise, 0.0, 10.0, low_open=False)
         self.max_wait = _finite("max_wait", max_wait, 0.0, 1e4, low_open=False)
         self.reach_tolerance = _finite("reach_tolerance", reach_tolerance, 0.0, 10.0)
+        self.extrapolate = _finite("extrapolate", extrapolate, 0.0, 1e4, low_open=False)
         self.encoder_kwargs = None if encoder_kwargs is None else dict(encoder_kwargs)
 
     # -------------------------------------------------------------- parameters
@@ -539,6 +544,7 @@ class GPDemonstrationPolicy:
             "frame_noise": self.frame_noise,
             "max_wait": self.max_wait,
             "reach_tolerance": self.reach_tolerance,
+            "extrapolate": self.extrapolate,
             "encoder_kwargs": None if self.encoder_kwargs is None else dict(self.encoder_kwargs),
         }
 
@@ -809,6 +815,15 @@ class GPDemonstrationPolicy:
             self._posture_cols.append((slice(c, c + d), slice(c + d, c + 2 * d)))
             c += 2 * d
         self._table = np.ascontiguousarray(np.hstack(cols))
+        # past the end: the means' mean slope over the last 2% of phase (variances held)
+        g = len(self.phase_grid_)
+        k = max(1, round(0.02 * (g - 1)))
+        slope = (self._table[-1] - self._table[-1 - k]) / (
+            self.phase_grid_[-1] - self.phase_grid_[-1 - k]
+        )
+        for _, var_cols in [*self._cols.values(), *self._posture_cols]:
+            slope[var_cols] = 0.0
+        self._end_slope = slope
         self._memory: PolicyState | None = None
 
     def _check_fitted(self) -> None:
@@ -818,15 +833,22 @@ class GPDemonstrationPolicy:
     def _rows(self, s: NDArray[np.float64]) -> NDArray[np.float64]:
         """Linear interpolation of the table at phases ``s (n,)`` -> ``(n, D)``."""
         g = len(self.phase_grid_)
+        beyond = self.extrapolate / self.duration_  # phase past 1 over which the motion goes on
         if s.shape == (1,):  # the same operations on one float
-            xf = min(max(float(s[0]), 0.0), 1.0) * (g - 1)
+            sf = float(s[0])
+            if sf > 1.0 and beyond > 0.0:
+                return (self._table[-1] + min(sf - 1.0, beyond) * self._end_slope)[None]
+            xf = min(max(sf, 0.0), 1.0) * (g - 1)
             j = min(int(xf), g - 2)
             wf = xf - j
             return ((1.0 - wf) * self._table[j] + wf * self._table[j + 1])[None]
         x = np.clip(s, 0.0, 1.0) * (g - 1)
         i = np.minimum(x.astype(np.intp), g - 2)
         w = (x - i)[:, None]
-        return (1.0 - w) * self._table[i] + w * self._table[i + 1]
+        rows = (1.0 - w) * self._table[i] + w * self._table[i + 1]
+        if beyond > 0.0 and np.any(s > 1.0):
+            rows += np.clip(s - 1.0, 0.0, beyond)[:, None] * self._end_slope
+        return rows
 
     def _frame_columns(self) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
         """Table columns of the object frames' means and variances, ``(m, p)`` each."""
@@ -1386,6 +1408,8 @@ class GPDemonstrationPolicy:
             params = {k: v for k, v in params.items() if k != "approach_offset"}
         if version in (1, 2):  # before posture clusters: one joint model
             params = {**params, "posture_distance": None}
+        if "extrapolate" not in params:  # written before it existed: hold the last targets
+            params = {**params, "extrapolate": 0.0}
         try:
             policy = cls(robot, adapter, **params)
         except (TypeError, ValueError) as exc:

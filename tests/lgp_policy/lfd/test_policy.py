@@ -155,6 +155,8 @@ def test_non_finite_observation_is_refused(policy, demos):
         ({"model": "nope"}, "model"),
         ({"frames": "cup"}, "frames"),
         ({"frame_noise": -1.0}, "frame_noise"),
+        ({"extrapolate": -0.5}, "extrapolate"),
+        ({"extrapolate": float("nan")}, "extrapolate"),
         ({"std_scale": {"cup": float("nan")}}, "std_scale"),
     ],
 )
@@ -425,3 +427,33 @@ def test_files_before_posture_clusters_load_with_one_joint_model(policy, tmp_pat
     old = _rewrite(good, tmp_path / "v2.npz", metadata=np.array(json.dumps(meta)))
     loaded = GPDemonstrationPolicy.load(old)
     assert loaded.posture_distance is None and loaded.posture_labels_ is None
+
+
+def test_past_the_end_the_demonstrated_motion_goes_on_then_stops(policy, tmp_path):
+    """Beyond phase 1 the means move along their slope over the last 2% of phase for at most
+    ``extrapolate`` s (variances held); ``extrapolate=0`` and files written before the parameter
+    existed hold the last targets."""
+    table, g = policy._table, len(policy.phase_grid_)
+    k = max(1, round(0.02 * (g - 1)))
+    slope = (table[-1] - table[-1 - k]) / (policy.phase_grid_[-1] - policy.phase_grid_[-1 - k])
+    beyond = policy.extrapolate / policy.duration_
+    assert beyond > 0.0
+    mean_cols = np.concatenate([np.arange(m.start, m.stop) for m, _ in policy._cols.values()])
+    var_cols = np.concatenate([np.arange(v.start, v.stop) for _, v in policy._cols.values()])
+    assert np.abs(slope[mean_cols]).max() > 0.0  # the demonstrations still move at their end
+    for s in (0.5 * beyond, beyond):
+        expected = table[-1] + s * np.where(np.isin(np.arange(len(slope)), var_cols), 0.0, slope)
+        for phases in (np.array([1.0 + s]), np.array([0.3, 1.0 + s])):  # one row and a batch
+            np.testing.assert_allclose(policy._rows(phases)[-1], expected, rtol=1e-12, atol=1e-15)
+    far = policy._rows(np.array([1.0 + 5.0 * beyond]))[0]  # it stops after `extrapolate` s
+    np.testing.assert_allclose(far, policy._rows(np.array([1.0 + beyond]))[0], rtol=1e-12)
+    np.testing.assert_array_equal(policy._rows(np.array([0.7, 1.0]))[1], table[-1])
+
+    good = policy.save(tmp_path / "good.npz")
+    with np.load(good, allow_pickle=False) as data:
+        meta = json.loads(str(data["metadata"]))
+    del meta["params"]["extrapolate"]
+    old = _rewrite(good, tmp_path / "old.npz", metadata=np.array(json.dumps(meta)))
+    held = GPDemonstrationPolicy.load(old)
+    assert held.extrapolate == 0.0
+    np.testing.assert_array_equal(held._rows(np.array([1.0 + beyond]))[0], table[-1])
