@@ -80,7 +80,6 @@ def test_potential_shaping_on_real_env_steps(skip_ungated):
     pays (gamma - 1) * phi, where the env's dense reward paid phi (up to +1 per step for a
     button held pressed)."""
     from gym_coffee.env import OBS_SLICES, REWARD_TERMS
-
     from lgp_policy.app.finetune_cli import POTENTIAL_TERMS, make_reward_fn
     from lgp_policy.residual.rewards import PotentialShaping
 
