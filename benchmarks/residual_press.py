@@ -4,13 +4,17 @@ Prints, for held-out layouts (seeds ``EVAL_SEED_OFFSET + i``, the ``gym-coffee e
 the learning curve uses the disjoint seeds ``CURVE_SEED_OFFSET + i``):
 
 - the base GP policy's per-stage success on the plain env and under the calibration bias (the
-  observed cup and machine positions off by ``--calibration-bias`` metres,
-  default 2 mm; the env's ``calibration_bias``: a per-episode offset of that length in a random
-  direction; the GP policy's press then misses or stops short, the paper's "stopped a few
-  millimeters in front of it");
+  env's ``calibration_bias``, default 2 mm: per episode, the observed cup positions are off by
+  that length in one random 3-D direction and the observed machine position in another; the
+  policy cannot observe it. The button's face has a 12 mm radius, so only the offset's
+  component along the button's axis matters for the press: for a random direction it is
+  uniform in [-2, 2] mm, and a press the base ends a millimetre or two short of 5 mm of travel
+  does not count);
 - per training seed: the fine-tuned policy's per-stage success (incl. ``cup_placed_at_end``: no
   stage lost), env steps, wall and CPU time of training;
-- the targets: fine-tuned press >= 95% on every seed, placed-at-end not below the base's.
+- the targets: fine-tuned press >= 95% on every seed, no stage below the base's.
+
+Every rate comes with its 95% Wilson interval.
 
 Usage::
 
@@ -18,6 +22,8 @@ Usage::
     python benchmarks/residual_press.py --quick               # 1 seed x 10k env steps, 20 layouts
     python benchmarks/residual_press.py --seeds 1 2 --policy runs/residual_press/base_policy.npz
     python benchmarks/residual_press.py --backend ray         # seeds as Ray tasks
+    python benchmarks/residual_press.py --policy base.npz --runs ft/   # evaluate only: the
+        # seeds ft/seedS/ written by `gym-coffee finetune base.npz --out ft/ --seeds S ...`
 
 The base policy is fitted here from 4 teacher demonstrations (seeds 0-3) unless ``--policy`` names
 a file. Everything goes to ``--out`` (default ``runs/residual_press``): the base policy, per seed
@@ -74,13 +80,23 @@ def _cached_eval(out: Path, base_path: Path, bias: float, seeds: list[int], base
     return cache[key]
 
 
+def _cell(rate: float, n: int) -> str:
+    """``rate`` in percent with its 95% Wilson interval."""
+    from lgp_policy.app.evaluation import wilson_interval
+
+    lo, hi = wilson_interval(round(rate * n), n)
+    return f"{100 * rate:.0f} [{100 * lo:.0f}, {100 * hi:.0f}]"
+
+
 def _table(rows: dict[str, dict[str, float]], n: int) -> str:
     columns = list(rows)
-    head = f"{'stage':<19}" + "".join(f"{c:>12}" for c in columns)
+    head = f"{'stage':<19}" + "".join(f"{c:>16}" for c in columns)
     lines = [head, "-" * len(head)]
     for stage in STAGES:
-        lines.append(f"{stage:<19}" + "".join(f"{rows[c][stage]:>12.2f}" for c in columns))
-    lines.append(f"(rates over {n} held-out layouts; a stage counts if reached at any step)")
+        lines.append(f"{stage:<19}" + "".join(f"{_cell(rows[c][stage], n):>16}" for c in columns))
+    lines.append(
+        f"(% of {n} held-out layouts [95% Wilson interval]; a stage counts if reached at any step)"
+    )
     return "\n".join(lines)
 
 
@@ -92,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episodes", type=int, default=None, help="held-out layouts (default 100)")
     ap.add_argument("--algo", choices=("sac", "td3", "ppo"), default="sac")
     ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--reward", choices=("shaped", "env"), default="shaped")
     ap.add_argument("--gate-start", type=float, default=None)
     ap.add_argument("--calibration-bias", type=float, default=0.002, metavar="M")
     ap.add_argument("--policy", type=Path, default=None, help="base policy file (else fitted)")
@@ -100,11 +117,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--eval-freq", type=int, default=10_000)
     ap.add_argument("--backend", choices=("local", "ray"), default="local")
     ap.add_argument("--out", type=Path, default=Path("runs/residual_press"))
+    ap.add_argument(
+        "--runs",
+        type=Path,
+        default=None,
+        help="evaluate the seeds already fine-tuned in RUNS/seedS (gym-coffee finetune --out "
+        "RUNS) instead of training; needs --policy (their base)",
+    )
     args = ap.parse_args(argv)
+    if args.runs is not None and args.policy is None:
+        ap.error("argument --runs: needs --policy (the base the runs were fine-tuned from)")
 
     seeds = args.seeds or ([0] if args.quick else [0, 1, 2])
     budget = args.timesteps or (10_000 if args.quick else 50_000)
     n_eval = args.episodes or (20 if args.quick else 100)
+    finished: dict[int, dict] = {}  # --runs: each seed's learning_curve.json, checked before work
+    for seed in seeds if args.runs is not None else []:
+        curve_file = args.runs / f"seed{seed}" / "learning_curve.json"
+        if not (curve_file.is_file() and curve_file.with_name("residual_policy.npz").is_file()):
+            ap.error(f"argument --runs: no finished run {curve_file.parent}")
+        finished[seed] = json.loads(curve_file.read_text())
+        if finished[seed]["algo"] != args.algo:
+            ap.error(f"argument --runs: {curve_file.parent} is a {finished[seed]['algo']} run")
 
     import torch
     from threadpoolctl import threadpool_limits
@@ -136,29 +170,34 @@ def main(argv: list[str] | None = None) -> int:
     rows = {"base plain": plain, f"base {bias * 1e3:g}mm": biased}
     print(_table(rows, n_eval))
 
-    settings = {
-        "algo": args.algo,
-        "timesteps": budget,
-        "scale": args.scale,
-        "gate_start": args.gate_start,
-        "eval_episodes": args.curve_episodes,
-        "eval_freq": args.eval_freq,
-        "checkpoint_freq": max(budget // 2, 1),
-        "n_envs": 1,
-        "calibration_bias": bias,
-        "progress": args.backend == "local",
-    }
-    jobs = [FinetuneJob(base_path.read_bytes(), seed, settings) for seed in seeds]
-    t0 = time.perf_counter()
-    runs = args.out / f"bias{bias * 1e3:g}mm-{args.algo}"
-    summaries = run_jobs(jobs, runs, backend=args.backend)
-    print(f"fine-tuned {len(seeds)} seed(s) in {time.perf_counter() - t0:.0f} s wall")
+    if args.runs is not None:
+        runs, summaries = args.runs, finished
+    else:
+        settings = {
+            "algo": args.algo,
+            "timesteps": budget,
+            "scale": args.scale,
+            "gate_start": args.gate_start,
+            "eval_episodes": args.curve_episodes,
+            "eval_freq": args.eval_freq,
+            "checkpoint_freq": max(budget // 2, 1),
+            "n_envs": 1,
+            "calibration_bias": bias,
+            "reward": args.reward,
+            "progress": args.backend == "local",
+        }
+        jobs = [FinetuneJob(base_path.read_bytes(), seed, settings) for seed in seeds]
+        t0 = time.perf_counter()
+        runs = args.out / f"bias{bias * 1e3:g}mm-{args.algo}"
+        summaries = run_jobs(jobs, runs, backend=args.backend)
+        print(f"fine-tuned {len(seeds)} seed(s) in {time.perf_counter() - t0:.0f} s wall")
     results: dict[str, object] = {
         "base_policy": str(base_path),
         "calibration_bias_m": bias,
         "algo": args.algo,
         "scale": args.scale,
         "budget_env_steps": budget,
+        "runs": str(runs),
         "episodes": n_eval,
         "base_plain": plain,
         "base": biased,
@@ -174,6 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         rows[f"seed {seed}"] = rates
         results["seeds"][str(seed)] = {  # type: ignore[index]
             "rates": rates,
+            "budget_env_steps": summary["total_env_steps"],
+            "scale": summary["scale"],
             "env_steps": summary["env_steps"],
             "agent_steps": summary["agent_steps"],
             "train_wall_time_s": summary["wall_time_s"],
@@ -182,14 +223,12 @@ def main(argv: list[str] | None = None) -> int:
             "eval_cpu_time_s": time.process_time() - c1,
             "curve": summary["curve"],
         }
-        met = (
-            rates["button_pressed"] >= 0.95
-            and rates["cup_placed_at_end"] >= biased["cup_placed_at_end"]
-        )
+        lost = [k for k in STAGES[:3] if rates[k] < biased[k]]
+        met = rates["button_pressed"] >= 0.95 and not lost
         ok = ok and met
         print(
-            f"seed {seed}: press {rates['button_pressed']:.2f} (target >= 0.95), placed at end "
-            f"{rates['cup_placed_at_end']:.2f} (base {biased['cup_placed_at_end']:.2f}), "
+            f"seed {seed}: press {rates['button_pressed']:.2f} (target >= 0.95), stages below "
+            f"the base's: {lost or 'none'}, "
             f"{summary['env_steps']} env steps, {summary['wall_time_s'] / 60:.1f} min wall, "
             f"{summary['cpu_time_s'] / 60:.1f} min CPU -> {'met' if met else 'MISSED'}"
         )

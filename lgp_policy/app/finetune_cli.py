@@ -42,6 +42,7 @@ __all__ = [
     "build_env_fn",
     "evaluate_stages",
     "make_gate",
+    "make_reward_fn",
     "plot_learning_curve",
     "run_finetune",
     "run_jobs",
@@ -56,6 +57,13 @@ PLACED_MARGIN = 0.05
 MAX_CALIBRATION_BIAS = 0.1
 """The env's largest ``calibration_bias`` (``gym_coffee.env.MAX_PERTURBATION``), in metres."""
 BACKENDS = ("local", "ray")
+REWARDS = ("shaped", "env")
+POTENTIAL_TERMS = ("reach", "carry", "press")
+"""The coffee env's dense reward terms (distances, the button's travel): with ``--reward shaped``
+(the default) the agent is paid their change, ``gamma * phi(s') - phi(s)``
+(:class:`~lgp_policy.residual.rewards.PotentialShaping`), and the env's event terms (stage,
+success, failure) as they are. Paid as they are, every step, the press term pays up to +1 per
+step for holding the button short of the press: SAC then learns not to press."""
 
 
 # ----------------------------------------------------------------------------- argument types
@@ -161,6 +169,14 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
         metavar="M",
         help="perturbation: the observed cup and machine positions are off by M metres, in a "
         "random direction per episode (the env's calibration_bias; default: 0)",
+    )
+    p.add_argument(
+        "--reward",
+        choices=REWARDS,
+        default="shaped",
+        help="shaped: the env's event terms (stage, success, failure) plus the change of its "
+        "dense terms (potential-based shaping); env: the env's dense reward as it is "
+        "(default: shaped)",
     )
     p.add_argument(
         "--backend", choices=BACKENDS, default="local", help="where seeds run (default: local)"
@@ -281,6 +297,21 @@ def evaluate_stages(policy: Any, env_fn: Callable[[], Any], seeds: Sequence[int]
     return {"episodes": len(seeds), "rates": {k: v / n for k, v in hits.items()}}
 
 
+def make_reward_fn(reward: str, algo: str) -> Any:
+    """The agent's reward for ``--reward``: ``None`` (the env's) or the potential-based shaping
+    of the env's dense terms with the algorithm's discount."""
+    if reward not in REWARDS:
+        raise ValueError(f"reward must be one of {REWARDS}, got {reward!r}")
+    if reward == "env":
+        return None
+    from gym_coffee.env import REWARD_TERMS
+    from lgp_policy.residual.models import resolve_hyperparameters
+    from lgp_policy.residual.rewards import PotentialShaping
+
+    assert set(POTENTIAL_TERMS) <= set(REWARD_TERMS), (POTENTIAL_TERMS, REWARD_TERMS)
+    return PotentialShaping(POTENTIAL_TERMS, resolve_hyperparameters(algo, None)["gamma"])
+
+
 class _CurveEvaluation:
     """``evaluate(policy)`` for :func:`lgp_policy.residual.train.finetune`'s learning curve."""
 
@@ -351,6 +382,7 @@ class FinetuneJob:
                 scale=s["scale"],
                 gate=make_gate(base, s["gate_start"]),
                 residual_dims=list(range(7)),
+                reward_fn=make_reward_fn(s["reward"], s["algo"]),
                 evaluate=_CurveEvaluation(env_fn, s["eval_episodes"]),
                 eval_freq=s["eval_freq"],
                 checkpoint_freq=s["checkpoint_freq"],
@@ -474,6 +506,7 @@ def run_finetune(args: argparse.Namespace) -> int:
         "checkpoint_freq": args.checkpoint_freq,
         "n_envs": args.n_envs,
         "calibration_bias": args.calibration_bias,
+        "reward": args.reward,
         "progress": not args.no_progress and args.backend == "local",
     }
     jobs = [FinetuneJob(base_bytes, seed, settings) for seed in args.seeds]

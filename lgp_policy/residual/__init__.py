@@ -14,7 +14,8 @@ policy where it matters, and nowhere else::
   exactly at the base policy.
 
 Modules, by job: :mod:`~lgp_policy.residual.gates` (where the residual acts),
-:mod:`~lgp_policy.residual.wrapper` (the agent's env), :mod:`~lgp_policy.residual.models` (SB3:
+:mod:`~lgp_policy.residual.wrapper` (the agent's env), :mod:`~lgp_policy.residual.rewards` (the
+agent's reward from the env's reward terms), :mod:`~lgp_policy.residual.models` (SB3:
 the optional dependency, hyperparameters, zero start), :mod:`~lgp_policy.residual.policy` (the
 fine-tuned policy, save/load), :mod:`~lgp_policy.residual.files` (the file format, bounded and
 validated reading), :mod:`~lgp_policy.residual.train` (:func:`finetune`). Episodes are rolled out
@@ -36,6 +37,7 @@ from lgp_policy.residual.models import (
     zero_init_residual_actor,
 )
 from lgp_policy.residual.policy import ObsNormalizer, ResidualPolicy, load_any_policy
+from lgp_policy.residual.rewards import PotentialShaping
 from lgp_policy.residual.train import FinetuneResult, finetune
 from lgp_policy.residual.wrapper import ResidualWrapper
 
@@ -47,6 +49,7 @@ __all__ = [
     "FinetuneResult",
     "ObsNormalizer",
     "PhaseGate",
+    "PotentialShaping",
     "ResidualPolicy",
     "ResidualPolicyFormatError",
     "ResidualWrapper",

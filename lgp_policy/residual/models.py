@@ -46,7 +46,7 @@ _OFF_POLICY: dict[str, Any] = {
     "policy_kwargs": {"net_arch": [64, 64], "activation_fn": "relu"},
 }
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
-    "sac": {**_OFF_POLICY, "learning_rate": 3e-4, "ent_coef": "auto", "initial_std": 0.3},
+    "sac": {**_OFF_POLICY, "learning_rate": 3e-4, "ent_coef": 0.01, "initial_std": 0.3},
     "td3": {**_OFF_POLICY, "learning_rate": 1e-3, "action_noise_sigma": 0.2},
     "ppo": {
         "learning_rate": 3e-4,

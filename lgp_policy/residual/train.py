@@ -276,6 +276,7 @@ def finetune(
             "wall_time_s": result.wall_time_s,
             "cpu_time_s": result.cpu_time_s,
             "hyperparameters": hp,
+            "reward_fn": "env reward" if reward_fn is None else repr(reward_fn),
             "curve": curve,
         }
         atomic_write_text(out / "learning_curve.json", json.dumps(summary, indent=2), force=True)

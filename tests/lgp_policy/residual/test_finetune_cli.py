@@ -119,6 +119,7 @@ def test_seeds_as_ray_tasks_give_the_local_results(tmp_path, gp_policy, capsys):
         "checkpoint_freq": 0,
         "n_envs": 1,
         "calibration_bias": 0.0,
+        "reward": "shaped",
         "progress": False,
     }
     base_bytes = gp_policy.read_bytes()
