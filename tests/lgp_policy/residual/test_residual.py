@@ -249,7 +249,8 @@ def test_tiny_finetune_saves_a_policy_that_loads_and_predicts_identically(tmp_pa
     got, _ = loaded.predict(obs, deterministic=True)
     np.testing.assert_array_equal(got, expected)
     single, _ = loaded.predict(obs[40], deterministic=True)
-    np.testing.assert_array_equal(single, expected[40])
+    # one row takes another matrix kernel than a batch: equal to float32 rounding, not bit for bit
+    np.testing.assert_allclose(single, expected[40], rtol=1e-6, atol=1e-7)
     # Closed gate: exactly the base.
     base_action, _ = base.predict(obs[:32])
     np.testing.assert_array_equal(got[:32], base_action)
