@@ -22,6 +22,7 @@ distribution (no log correction); it is kept for comparison.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -147,6 +148,14 @@ def _with_noise_bounds(kernel: Kernel, log_lo: float, log_hi: float) -> Kernel:
     return out
 
 
+def fixed_gp(k: Kernel, alpha: Any = 0.0, *, collapse_replicates: bool) -> GaussianProcess:
+    """A GP with the kernel's hyperparameters as given (no optimiser) on targets as they are: the
+    building block of the noise models' steps (their hyperparameters are learnt jointly)."""
+    return GaussianProcess(
+        k, optimizer=None, normalize_y=False, alpha=alpha, collapse_replicates=collapse_replicates
+    )
+
+
 def _fit_z(make, zk: Kernel, U, z, var, prepare: bool = False) -> GaussianProcess:
     """The z-process on the distinct inputs ``U`` with known target noise ``var``.
 
@@ -250,14 +259,7 @@ def most_likely_em(
     opt: dict[str, Any] = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
     lo, hi = (float(b) for b in log_noise_bounds)
 
-    def make(k: Kernel, alpha: Any = 0.0) -> GaussianProcess:
-        return GaussianProcess(
-            k,
-            optimizer=None,
-            normalize_y=False,
-            alpha=alpha,
-            collapse_replicates=collapse_replicates,
-        )
+    make = functools.partial(fixed_gp, collapse_replicates=collapse_replicates)
 
     # Step 1: homoscedastic GP G1, its noise kept within the bounds.
     kernel = _with_noise_bounds(kernel, lo, hi)

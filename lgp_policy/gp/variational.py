@@ -42,6 +42,7 @@ times at most ``max_iter`` L-BFGS iterations; ``m`` is limited to :data:`MAX_VHG
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -64,6 +65,7 @@ from lgp_policy.gp.heteroscedastic import (
     _signal_length_scale,
     _with_noise_bounds,
     default_noise_kernel,
+    fixed_gp,
     signal_kernel,
 )
 from lgp_policy.gp.kernels import Kernel
@@ -206,14 +208,7 @@ def variational_heteroscedastic(
     lo, hi = (float(b) for b in log_noise_bounds)
     sets = [_Set(X, y) for X, y in datasets]
 
-    def make(k: Kernel, alpha: Any = 0.0) -> GaussianProcess:
-        return GaussianProcess(
-            k,
-            optimizer=None,
-            normalize_y=False,
-            alpha=alpha,
-            collapse_replicates=collapse_replicates,
-        )
+    make = functools.partial(fixed_gp, collapse_replicates=collapse_replicates)
 
     # Initialisation: the homoscedastic GP (its noise within the bounds), as the EM's step 1.
     kernel = _with_noise_bounds(kernel, lo, hi)
