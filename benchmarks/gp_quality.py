@@ -93,15 +93,20 @@ def coffee_sets(n_steps: int, max_dims: int | None) -> dict[str, np.ndarray]:
     return {f"coffee/{k}": v[:, :, :max_dims] for k, v in data.items()}
 
 
+def _time_grid(grid: str, n_steps: int, rng: np.random.Generator) -> np.ndarray:
+    """One demonstration's time stamps on [0, 1]: ``"shared"`` (one grid for all) or ``"own"``
+    (random stamps between the fixed ends)."""
+    if grid == "shared":
+        return np.linspace(0.0, 1.0, n_steps)
+    return np.sort(np.r_[0.0, 1.0, rng.uniform(0.0, 1.0, n_steps - 2)])
+
+
 def shapes(grid: str, n_demos: int = 5, n_steps: int = 150, seed: int = 0):
     """2-D shapes from a common start to a common end (zero spread at both)."""
     rng = np.random.default_rng(seed)
     Ts, Ys = [], []
     for _ in range(n_demos):
-        if grid == "shared":
-            t = np.linspace(0.0, 1.0, n_steps)
-        else:
-            t = np.sort(np.r_[0.0, 1.0, rng.uniform(0.0, 1.0, n_steps - 2)])
+        t = _time_grid(grid, n_steps, rng)
         bend = np.sin(np.pi * t)  # 0 at both ends
         a, b, c = rng.normal(0.0, [0.25, 0.25, 0.15])
         x = t + a * bend + c * np.sin(3 * np.pi * t) * bend
@@ -118,10 +123,7 @@ def smooth_deviations(seed: int, n_demos: int, grid: str, n_steps: int = 100):
     rng = np.random.default_rng(1000 + seed)
     Ts, Ys = [], []
     for _ in range(n_demos):
-        if grid == "shared":
-            t = np.linspace(0.0, 1.0, n_steps)
-        else:
-            t = np.sort(np.r_[0.0, 1.0, rng.uniform(0.0, 1.0, n_steps - 2)])
+        t = _time_grid(grid, n_steps, rng)
         K = np.exp(-0.5 * (t[:, None] - t[None, :]) ** 2 / 0.15**2) + 1e-8 * np.eye(n_steps)
         sd = 0.02 + 0.3 * np.sin(np.pi * t) ** 2
         Ts.append(t)
