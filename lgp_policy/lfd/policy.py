@@ -780,6 +780,15 @@ class GPDemonstrationPolicy:
         nearest = np.argmin(np.einsum("ijk,ijk->ij", diff, diff), axis=1)
         return self.posture_labels_[nearest]  # type: ignore[index]
 
+    def _posture_one(self, state: PolicyState) -> int:
+        """:meth:`_posture_of` for one environment."""
+        parts = []
+        for name in self.frame_names_[1:]:
+            parts += [state.position[name][0], ROTATION_LENGTH * state.rotation[name].reshape(-1)]
+        diff = np.concatenate(parts) - self.layout_features_  # type: ignore[operator]
+        nearest = np.argmin(np.einsum("jk,jk->j", diff, diff))
+        return int(self.posture_labels_[nearest])  # type: ignore[index]
+
     def _joint_rows(
         self, row: NDArray[np.float64], state: PolicyState
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -808,6 +817,8 @@ class GPDemonstrationPolicy:
             cols += [self.mean_[name], var]
             self._cols[name] = (slice(c, c + d), slice(c + d, c + 2 * d))
             c += 2 * d
+        # the object frames' columns, one after the other: (m, 2, p) = per frame, means and vars
+        self._frame_block = slice(self._cols[JOINT_FRAME][1].stop, c)
         self._posture_cols = []
         for mean, std in zip(self.posture_mean_, self.posture_std_, strict=True):
             d = mean.shape[1]
@@ -830,18 +841,24 @@ class GPDemonstrationPolicy:
         if not hasattr(self, "_table"):
             raise RuntimeError("This GPDemonstrationPolicy is not fitted; call fit() or load().")
 
+    def _row(self, s: float) -> NDArray[np.float64]:
+        """:meth:`_rows` of one phase given as a float -> ``(D,)`` (the same operations)."""
+        if s > 1.0 and self.extrapolate > 0.0:  # the motion goes on past the end
+            return self._table[-1] + min(s - 1.0, self.extrapolate / self.duration_) * (
+                self._end_slope
+            )
+        g = len(self.phase_grid_)
+        x = min(max(s, 0.0), 1.0) * (g - 1)
+        j = min(int(x), g - 2)
+        w = x - j
+        return (1.0 - w) * self._table[j] + w * self._table[j + 1]
+
     def _rows(self, s: NDArray[np.float64]) -> NDArray[np.float64]:
         """Linear interpolation of the table at phases ``s (n,)`` -> ``(n, D)``."""
+        if s.shape == (1,):
+            return self._row(float(s[0]))[None]
         g = len(self.phase_grid_)
         beyond = self.extrapolate / self.duration_  # phase past 1 over which the motion goes on
-        if s.shape == (1,):  # the same operations on one float
-            sf = float(s[0])
-            if sf > 1.0 and beyond > 0.0:
-                return (self._table[-1] + min(sf - 1.0, beyond) * self._end_slope)[None]
-            xf = min(max(sf, 0.0), 1.0) * (g - 1)
-            j = min(int(xf), g - 2)
-            wf = xf - j
-            return ((1.0 - wf) * self._table[j] + wf * self._table[j + 1])[None]
         x = np.clip(s, 0.0, 1.0) * (g - 1)
         i = np.minimum(x.astype(np.intp), g - 2)
         w = (x - i)[:, None]
@@ -876,9 +893,13 @@ class GPDemonstrationPolicy:
             raise ValueError(
                 f"observation must have shape ({dim},) or (n_envs, {dim}), got {obs.shape}"
             )
+        if single:  # a finite dot product means finite entries (it is cheaper on one row)
+            if not math.isfinite(obs.dot(obs)) and not np.isfinite(obs).all():
+                raise ValueError("observation contains NaN or inf")
+            return obs[None], single
         if not np.isfinite(obs).all():
             raise ValueError("observation contains NaN or inf")
-        return (obs[None] if single else obs), single
+        return obs, single
 
     # ----------------------------------------------------------------- predict
     def phase(self, observation: ArrayLike) -> NDArray[np.float64] | float:
@@ -907,8 +928,6 @@ class GPDemonstrationPolicy:
         """
         t_obs = observed.time
         n = len(state)
-        if n == 1:
-            return self._advance_one(state, observed, hand)
         fresh = state.fresh.copy()
         if t_obs is not None:
             fresh |= t_obs < state.last_time - 1e-9
@@ -967,6 +986,29 @@ class GPDemonstrationPolicy:
         tol = np.maximum(self.reach_tolerance, 3.0 * spread)
         return np.asarray(np.linalg.norm(hand - target, axis=1) <= tol)
 
+    def _hand_at_landmark_one(
+        self, state: PolicyState, frame: str, s_l: float, hand: list[float]
+    ) -> bool:
+        """:meth:`_hand_at_landmark` for one environment, the hand given as floats (the same
+        operations in the same order)."""
+        mcol, vcol = self._cols[frame]
+        row = self._row(s_l)
+        d = len(hand)
+        mean, var = row[mcol][:d].tolist(), row[vcol][:d].tolist()
+        origin, rot = state.position[frame][0].tolist(), state.rotation[frame][0].tolist()
+        dist = 0.0
+        spread = 0.0
+        for i in range(d):  # target = o + R x_hat (frame_targets), |hand - target|
+            m_r = 0.0
+            for j in range(d):
+                m_r += mean[j] * rot[i][j]
+            diff = hand[i] - (origin[i] + m_r)
+            dist += diff * diff
+            spread += var[i]
+        # a frame that is loose there (demonstrations disagree) asks for no precision
+        tol = max(self.reach_tolerance, 3.0 * math.sqrt(spread / d))
+        return math.sqrt(dist) <= tol
+
     def _advance_one(
         self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -997,7 +1039,7 @@ class GPDemonstrationPolicy:
                 reached = False if fresh or prev is None else bool(prev[0])
                 due = not reached and s >= s_l - lead
                 if due and hand is not None:
-                    close = bool(self._hand_at_landmark(state, frame, s_l, hand)[0])
+                    close = self._hand_at_landmark_one(state, frame, s_l, hand[0].tolist())
                     reached = reached or close
                     if not close:
                         hold = True
@@ -1125,7 +1167,11 @@ class GPDemonstrationPolicy:
             starts = np.asarray(episode_start, dtype=bool).reshape(-1)
             if starts.shape != (n,):
                 raise ValueError(f"episode_start must have {n} entries, got {starts.shape}")
-            state.fresh = state.fresh | starts
+            if n == 1:  # in place: the state's arrays are its own (PolicyState.new, _advance)
+                if starts[0]:
+                    state.fresh[0] = True
+            else:
+                state.fresh = state.fresh | starts
         return state, own
 
     def _compute(
@@ -1134,14 +1180,11 @@ class GPDemonstrationPolicy:
         self._check_fitted()
         obs, single = self._as_batch(observation)
         n = obs.shape[0]
+        if n == 1:
+            return self._compute_one(obs, single, state, episode_start, cov)
         mem, own = self._state_for(n, state, episode_start)
         observed = self.adapter_.read(obs)
-        q = np.asarray(observed.state, dtype=float)
-        if q.shape != (n, self.robot_.n_joints):
-            raise ValueError(
-                f"the adapter read a state of shape {q.shape}; the robot has "
-                f"{self.robot_.n_joints} coordinates"
-            )
+        q = self._state_of(observed, n)
         x = J = None
         if len(self.frame_names_) > 1:
             x, J = hand_points(self.robot_, q, self.approach_offset_)
@@ -1153,31 +1196,26 @@ class GPDemonstrationPolicy:
         k = q.shape[1]
         jm, jv = self._cols[JOINT_FRAME]
         grip_row = row
-        waiting = not math.isnan(aim[0]) if n == 1 else bool(np.any(~np.isnan(aim)))
-        if waiting:  # waiting to reach a gripper event's target: aim at it
+        if np.any(~np.isnan(aim)):  # waiting to reach a gripper event's target: aim at it
             row = self._rows(np.where(np.isnan(aim), s, aim))
         if self.posture_labels_ is None:
             joint_mean, joint_var = row[:, jm], row[:, jv]
         else:  # the joint model of the posture the nearest demonstrated layout was shown in
             joint_mean, joint_var = self._joint_rows(row, mem)
-        one: int | slice = 0 if n == 1 else slice(None)  # one robot: unbatched arrays
         frames = None
-        if x is not None and J is not None:
+        if x is not None:
             names = self.frame_names_[1:]
             mcols, vcols = self._frame_columns()
-            pos, rot = [mem.position[f] for f in names], [mem.rotation[f] for f in names]
-            r = row[one]
             frames = FrameStack(
-                np.concatenate(pos) if n == 1 else np.stack(pos, axis=1),
-                np.concatenate(rot) if n == 1 else np.stack(rot, axis=1),
-                r[..., mcols],
-                r[..., vcols],
+                np.stack([mem.position[f] for f in names], axis=1),
+                np.stack([mem.rotation[f] for f in names], axis=1),
+                row[:, mcols],
+                row[:, vcols],
             )
-            x, J = x[one], J[one]
         dq, fused = reproduction_step(
-            q[one],
-            joint_mean[one, :k],
-            joint_var[one, :k],
+            q,
+            joint_mean[:, :k],
+            joint_var[:, :k],
             x,
             J,
             frames,
@@ -1187,11 +1225,83 @@ class GPDemonstrationPolicy:
             ridge=DEFAULT_RIDGE,
             return_cov=cov,
         )
-        if n == 1:
-            dq, fused = dq[None], None if fused is None else fused[None]
         gripper = grip_row[:, jm][:, k] if joint_mean.shape[1] > k else np.zeros(n)
         action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
         return single, mem, np.minimum(np.maximum(s, 0.0), 1.0), action, dq, fused, gripper, row
+
+    def _compute_one(
+        self,
+        obs: NDArray[np.float64],
+        single: bool,
+        state: Any,
+        episode_start: ArrayLike | None,
+        cov: bool,
+    ) -> tuple[Any, ...]:
+        """:meth:`_compute` for one environment ``obs (1, obs_dim)`` (the control loop): the same
+        steps in the same order on one row (floats and unbatched arrays, fewer and cheaper calls);
+        tested equal to the batch path. Returns batched arrays (``n = 1``) as ``_compute`` does."""
+        mem, own = self._state_for(1, state, episode_start)
+        observed = self.adapter_.read(obs)
+        q = self._state_of(observed, 1)
+        k = q.shape[1]
+        x = J = None
+        if len(self.frame_names_) > 1:
+            x, J = hand_points(self.robot_, q, self.approach_offset_)
+        clock, aim = self._advance_one(
+            mem, observed, None if x is None else x[:, : self.robot_.dim]
+        )
+        if own:
+            self._memory = mem
+        s = (float(clock[0]) + self.lookahead * self.control_dt_) / self.duration_
+        row = grip_row = self._row(s)
+        if not math.isnan(aim[0]):  # waiting to reach a gripper event's target: aim at it
+            row = self._row(float(aim[0]))
+        if self.posture_labels_ is None:
+            jm, jv = self._cols[JOINT_FRAME]
+        else:  # the joint model of the posture the nearest demonstrated layout was shown in
+            jm, jv = self._posture_cols[self._posture_one(mem)]
+        frames = None
+        if x is not None and J is not None:
+            names = self.frame_names_[1:]
+            block = row[self._frame_block].reshape(len(names), 2, -1)  # per frame: means, vars
+            frames = FrameStack(
+                np.concatenate([mem.position[f] for f in names]),
+                np.concatenate([mem.rotation[f] for f in names]),
+                block[:, 0],
+                block[:, 1],
+            )
+            x, J = x[0], J[0]
+        joint_mean = row[jm]
+        dq, fused = reproduction_step(
+            q[0],
+            joint_mean[:k],
+            row[jv][:k],
+            x,
+            J,
+            frames,
+            alpha=self.alpha,
+            null_space_std=self.null_space_std,
+            damping=DEFAULT_DAMPING,
+            ridge=DEFAULT_RIDGE,
+            return_cov=cov,
+        )
+        dq = dq[None]
+        jm_joint = self._cols[JOINT_FRAME][0]
+        gripper = grip_row[jm_joint][k : k + 1] if joint_mean.shape[0] > k else np.zeros(1)
+        action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
+        phase = np.array([min(max(s, 0.0), 1.0)])
+        fused = None if fused is None else fused[None]
+        return single, mem, phase, action, dq, fused, gripper, row[None]
+
+    def _state_of(self, observed: Any, n: int) -> NDArray[np.float64]:
+        """The robot state ``(n, k)`` the adapter read, checked against the robot."""
+        q = np.asarray(observed.state, dtype=float)
+        if q.shape != (n, self.robot_.n_joints):
+            raise ValueError(
+                f"the adapter read a state of shape {q.shape}; the robot has "
+                f"{self.robot_.n_joints} coordinates"
+            )
+        return q
 
     def predict(
         self,

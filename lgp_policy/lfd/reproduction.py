@@ -47,6 +47,7 @@ runs one robot (the common control loop) on 2-D arrays with a Cholesky solver.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -374,8 +375,9 @@ def _solve(A: NDArray[np.float64], B: NDArray[np.float64]) -> NDArray[np.float64
 
 def limit_step(dq: NDArray[np.float64], max_step: float) -> NDArray[np.float64]:
     """Scale each row of ``dq (n, k)`` so that ``max |dq_j| <= max_step``, keeping its direction."""
-    if dq.shape[0] == 1:  # the same arithmetic on one float
-        peak = float(np.maximum.reduce(np.abs(dq), axis=None))
+    if dq.shape[0] == 1:  # the same arithmetic on floats
+        values = dq[0].tolist()
+        peak = math.nan if any(map(math.isnan, values)) else max(map(abs, values))
         return dq * min(max_step / max(peak, 1e-300), 1.0)  # (a NaN stays NaN)
     peak = np.abs(dq).max(axis=-1, keepdims=True)
     return dq * np.minimum(1.0, max_step / np.maximum(peak, 1e-300))

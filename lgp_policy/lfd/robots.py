@@ -181,6 +181,8 @@ class _DeltaAction:
         step = np.asarray(step, dtype=float)
         k = step.shape[-1]
         g = self.gripper
+        if step.shape == (1, k):  # one environment: the same arithmetic on floats
+            return self._one(step[0].tolist(), gripper)
         out = np.empty((*step.shape[:-1], k + (g is not None)))
         np.divide(step, self.max_step, out=out[..., :k])
         if g is not None:
@@ -188,6 +190,14 @@ class _DeltaAction:
             grip = float(arr.reshape(-1)[0]) if arr.size == 1 else arr  # one: on a float
             out[..., k] = -1.0 + 2.0 * (grip - g.closed) / (g.open - g.closed)
         return np.minimum(np.maximum(out, -1.0, out=out), 1.0, out=out).astype(np.float32)
+
+    def _one(self, step: list[float], gripper: ArrayLike) -> NDArray[np.float32]:
+        g = self.gripper
+        out = [v / self.max_step for v in step]
+        if g is not None:
+            grip = float(np.asarray(gripper, dtype=float).reshape(-1)[0])
+            out.append(-1.0 + 2.0 * (grip - g.closed) / (g.open - g.closed))
+        return np.array([[min(max(v, -1.0), 1.0) for v in out]], dtype=np.float32)
 
 
 class JointDeltaAction(_DeltaAction):

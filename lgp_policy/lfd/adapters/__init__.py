@@ -19,6 +19,7 @@ grasped object) the policy keeps its last estimate.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -28,7 +29,13 @@ from numpy.typing import NDArray
 
 from lgp_policy.lfd.robots import ActionMap, GripperSpec, RobotModel
 
-__all__ = ["ArrayAdapter", "ObservationAdapter", "Observed", "rotation_from_angle"]
+__all__ = [
+    "ArrayAdapter",
+    "ObservationAdapter",
+    "Observed",
+    "rotation_about_z",
+    "rotation_from_angle",
+]
 
 
 @dataclass
@@ -88,11 +95,28 @@ def rotation_from_angle(angle: NDArray[np.float64], dim: int) -> NDArray[np.floa
 
     One angle is looked up among the last few computed (static objects observed every step)."""
     a = np.asarray(angle, dtype=float).reshape(-1)
-    key = (float(a[0]), dim) if a.shape == (1,) else None
-    if key is not None:
-        cached = _ROTATIONS.get(key)
-        if cached is not None:
-            return cached
+    if a.shape == (1,):
+        return rotation_about_z(float(a[0]), dim)
+    return _rotations(a, dim)
+
+
+def rotation_about_z(angle: float, dim: int) -> NDArray[np.float64]:
+    """:func:`rotation_from_angle` of one angle given as a float, ``(1, d, d)`` (read-only; the
+    last few computed are kept: static objects are observed every step)."""
+    key = (angle, dim)
+    cached = _ROTATIONS.get(key)
+    if cached is None:
+        c, s = math.cos(angle), math.sin(angle)
+        rows = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]] if dim == 3 else [[c, -s], [s, c]]
+        cached = np.array([rows])
+        cached.setflags(write=False)
+        if len(_ROTATIONS) >= _MAX_CACHED_ROTATIONS:
+            _ROTATIONS.clear()
+        _ROTATIONS[key] = cached
+    return cached
+
+
+def _rotations(a: NDArray[np.float64], dim: int) -> NDArray[np.float64]:
     c, s = np.cos(a), np.sin(a)
     R = np.zeros((a.shape[0], dim, dim))
     R[:, 0, 0] = c
@@ -102,10 +126,6 @@ def rotation_from_angle(angle: NDArray[np.float64], dim: int) -> NDArray[np.floa
     if dim == 3:
         R[:, 2, 2] = 1.0
     R.setflags(write=False)
-    if key is not None:
-        if len(_ROTATIONS) >= _MAX_CACHED_ROTATIONS:
-            _ROTATIONS.clear()
-        _ROTATIONS[key] = R
     return R
 
 

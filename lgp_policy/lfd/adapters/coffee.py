@@ -27,6 +27,7 @@ demonstrations.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import Any, ClassVar
 
@@ -39,7 +40,7 @@ from gym_coffee import kinematics as _kin
 from gym_coffee.env import OBS_DIM, OBS_SLICES
 from gym_coffee.robot import GRIPPER_MAX_OPENING, MAX_JOINT_STEP
 from gym_coffee.scene import CUP_HEIGHT, PLACE_OFFSET
-from lgp_policy.lfd.adapters import Observed, rotation_from_angle
+from lgp_policy.lfd.adapters import Observed, rotation_about_z, rotation_from_angle
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.robots import GripperSpec, JointDeltaAction
 
@@ -59,6 +60,14 @@ _HELD_OPENING = (0.04, 0.075)
 _CONTROL_DT = 0.04
 _CUP, _EE, _GRIPPER = OBS_SLICES["cup_pos"], OBS_SLICES["ee_pos"], OBS_SLICES["gripper"].start
 _HALF_CUP = np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
+_HALF_CUP_Z = float(_HALF_CUP[2])
+_PLACE_X, _PLACE_Y = float(PLACE_OFFSET[0]), float(PLACE_OFFSET[1])
+
+
+# one environment's flags (read-only: the policy copies what it keeps)
+_TRUE, _FALSE = np.ones(1, dtype=bool), np.zeros(1, dtype=bool)
+_TRUE.setflags(write=False)
+_FALSE.setflags(write=False)
 
 
 class PandaModel:
@@ -173,6 +182,27 @@ def cup_rotation(
     return rotation_from_angle(np.arctan2(cup[:, 1], cup[:, 0]) + side * (0.5 * np.pi), 3)
 
 
+def _cup_held_one(obs: list[float]) -> bool:
+    """:func:`cup_held` of one observation given as floats (the same operations in the same
+    order)."""
+    c0, c1, c2 = obs[_CUP]
+    e0, e1, e2 = obs[_EE]
+    o0, o1, o2 = e0 - (c0 + 0.0), e1 - (c1 + 0.0), e2 - (c2 + _HALF_CUP_Z)
+    g = obs[_GRIPPER]
+    near = math.sqrt(o0 * o0 + o1 * o1 + o2 * o2) < HELD_DISTANCE
+    return near and g > _HELD_OPENING[0] and g < _HELD_OPENING[1]
+
+
+def _cup_angle_one(cx: float, cy: float, mx: float, my: float, yaw: float) -> float:
+    """The angle of :func:`cup_rotation` for one layout given as floats (the same operations in
+    the same order)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    px = mx + (c * _PLACE_X - s * _PLACE_Y)
+    py = my + (s * _PLACE_X + c * _PLACE_Y)
+    side = 1.0 if cx * py - cy * px >= 0.0 else -1.0
+    return math.atan2(cy, cx) + side * (0.5 * math.pi)
+
+
 class CoffeeAdapter:
     """Reads gym-coffee observations for :class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy`.
 
@@ -200,9 +230,12 @@ class CoffeeAdapter:
         self.action_map = JointDeltaAction(MAX_JOINT_STEP, self.gripper)
         self._time, self._yaw = OBS_SLICES["time"].start, OBS_SLICES["machine_yaw"].start
         self._joints, self._machine = OBS_SLICES["joint_pos"], OBS_SLICES["machine_pos"]
+        self._cup, self._cup_init = OBS_SLICES["cup_pos"], OBS_SLICES["cup_init_pos"]
 
     def read(self, observation: NDArray[np.float64]) -> Observed:
         obs = observation
+        if obs.shape[0] == 1:
+            return self._read_one(obs)
         held = cup_held(obs)
         cup = obs[:, OBS_SLICES["cup_pos" if self.track_cup else "cup_init_pos"]]
         machine = obs[:, self._machine]
@@ -216,6 +249,26 @@ class CoffeeAdapter:
             },
             valid={"cup": ~held} if self.track_cup else {},
             events={"cup_held": held},
+        )
+
+    def _read_one(self, obs: NDArray[np.float64]) -> Observed:
+        """:meth:`read` of one observation ``(1, OBS_DIM)``, on floats (the control loop)."""
+        v = obs[0].tolist()
+        held = _cup_held_one(v)
+        cup = self._cup if self.track_cup else self._cup_init
+        cx, cy, _ = v[cup]
+        mx, my, _ = v[self._machine]
+        yaw = v[self._yaw]
+        not_held = _FALSE if held else _TRUE
+        return Observed(
+            time=obs[:, self._time],
+            state=obs[:, self._joints],
+            frames={
+                "cup": (obs[:, cup], rotation_about_z(_cup_angle_one(cx, cy, mx, my, yaw), 3)),
+                "machine": (obs[:, self._machine], rotation_about_z(yaw, 3)),
+            },
+            valid={"cup": not_held} if self.track_cup else {},
+            events={"cup_held": _TRUE if held else _FALSE},
         )
 
     @staticmethod
