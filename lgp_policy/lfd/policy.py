@@ -80,7 +80,6 @@ from lgp_policy.lfd.reproduction import (
     DEFAULT_DAMPING,
     DEFAULT_RIDGE,
     FrameStack,
-    frame_targets,
     limit_step,
     reproduction_step,
 )
@@ -306,20 +305,11 @@ def _hand_points_one(
         ]
     )
     x = np.array([[p0, p1, p2, p0 - a, p1 - b, p2 - c]])
-    return x, (T @ J6[0])[None]
+    return x, T.dot(J6[0])[None]
 
 
 _NO_AIM = np.full(1, np.nan)  # one environment that is not waiting (read-only)
 _NO_AIM.setflags(write=False)
-
-
-def _put(flags: dict[Any, NDArray[np.bool_]], key: Any, value: bool) -> None:
-    """``flags[key] = [value]`` for one environment, in place where the array exists."""
-    arr = flags.get(key)
-    if arr is None:
-        flags[key] = np.array([value])
-    else:
-        arr[0] = value
 
 
 def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
@@ -971,19 +961,15 @@ class GPDemonstrationPolicy:
     def _hand_at_landmark(
         self, state: PolicyState, frame: str, s_l: float, hand: NDArray[np.float64]
     ) -> NDArray[np.bool_]:
-        """Per row, whether the hand ``(n, d)`` is at the target of ``frame`` at phase ``s_l``."""
+        """Per row, whether the hand ``(n, d)`` is at the target ``o + R x_hat(s_l)`` of
+        ``frame`` (as :func:`~lgp_policy.lfd.reproduction.frame_targets`), within
+        ``reach_tolerance`` or 3 predicted std."""
         mcol, vcol = self._cols[frame]
-        row = self._rows(np.full(hand.shape[0], s_l))
+        row = self._row(s_l)
         d = hand.shape[1]
-        target, _ = frame_targets(
-            state.position[frame],
-            state.rotation[frame],
-            row[:, mcol][:, :d],
-            row[:, vcol][:, :d],
-        )
+        target = state.position[frame] + np.matvec(state.rotation[frame], row[mcol][:d])
         # a frame that is loose there (demonstrations disagree) asks for no precision
-        spread = np.sqrt(np.mean(row[:, vcol][:, :d], axis=1))
-        tol = np.maximum(self.reach_tolerance, 3.0 * spread)
+        tol = max(self.reach_tolerance, 3.0 * math.sqrt(sum(row[vcol][:d].tolist()) / d))
         return np.asarray(np.linalg.norm(hand - target, axis=1) <= tol)
 
     def _hand_at_landmark_one(
@@ -1035,24 +1021,27 @@ class GPDemonstrationPolicy:
         if self.max_wait > 0:
             lead = (self.lookahead + 1.0) * self.control_dt_ / self.duration_
             for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
-                prev = state.reached.get(j)
-                reached = False if fresh or prev is None else bool(prev[0])
-                due = not reached and s >= s_l - lead
-                if due and hand is not None:
-                    close = self._hand_at_landmark_one(state, frame, s_l, hand[0].tolist())
-                    reached = reached or close
-                    if not close:
+                flag = state.reached.get(j)
+                if flag is None:
+                    flag = state.reached[j] = np.zeros(1, dtype=bool)
+                reached = not fresh and bool(flag[0])
+                if not reached and s >= s_l - lead and hand is not None:  # due
+                    reached = self._hand_at_landmark_one(state, frame, s_l, hand[0].tolist())
+                    if not reached:
                         hold = True
                         if math.isnan(aim):
                             aim = s_l
-                _put(state.reached, j, reached)
+                flag[0] = reached
+            events = observed.events
             for ev, s_e in self.event_phases_.items():
-                flags = observed.events.get(ev)
-                if flags is None:
+                observed_flag = events.get(ev)
+                if observed_flag is None:
                     continue
-                prev = state.seen.get(ev)
-                seen = (False if fresh or prev is None else bool(prev[0])) or bool(flags[0])
-                _put(state.seen, ev, seen)
+                flag = state.seen.get(ev)
+                if flag is None:
+                    flag = state.seen[ev] = np.zeros(1, dtype=bool)
+                seen = (not fresh and bool(flag[0])) or bool(observed_flag[0])
+                flag[0] = seen
                 hold = hold or (not seen and s >= s_e)
         hold = hold and waited + dt <= self.max_wait and not fresh
         # written in place: the state's arrays are its own (PolicyState.new, _advance)

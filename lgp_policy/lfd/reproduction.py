@@ -77,6 +77,7 @@ DEFAULT_RIDGE = 1e-9
 """rad^-2; added to the fused precision so it is always invertible."""
 MIN_VARIANCE = 1e-10
 """Floor on every predicted variance (rad^2 or m^2), keeps precisions finite."""
+_MIN_VARIANCE = np.array(MIN_VARIANCE)  # as an array: cheaper in a ufunc than a Python float
 
 
 _EYES: dict[int, NDArray[np.float64]] = {}
@@ -273,10 +274,11 @@ def _step_one(
     return_cov: bool,
 ) -> tuple[NDArray[Any], NDArray[Any] | None]:
     """:func:`_step` for one robot: ``q (k,)``, ``J (p, k)``, frames ``(m, ...)``; the same
-    arithmetic on 2-D arrays (fewer and cheaper calls) with a Cholesky solver."""
+    arithmetic on 2-D arrays (``ndarray.dot``: fewer and cheaper calls than ``matmul``) with a
+    Cholesky solver."""
     k = q.shape[0]
     de = joint_target - q  # line 15
-    lam_theta = 1.0 / np.maximum(joint_var, MIN_VARIANCE)
+    lam_theta = np.reciprocal(np.maximum(joint_var, _MIN_VARIANCE))
     eta = lam_theta * de
     if frames is None or task_pos is None or J is None:
         Lam = np.zeros((k, k))
@@ -285,31 +287,33 @@ def _step_one(
         m, d = origin.shape
         p = J.shape[0]
         b = p // d
-        Jt = J.T
-        A = J @ Jt
+        A = J.dot(J.T)
         A += _damped_eye(p, damping)
         Z = _spd_solve(A, J)  # J^+ = Z^T (line 10)
-        N = _eye(k) - Z.T @ J
+        N = _eye(k) - Z.T.dot(J)
         if null_space_std is None:
-            null_prec = (N * lam_theta) @ N
+            null_prec = (N * lam_theta).dot(N)
         else:
             null_prec = N / null_space_std**2
-        t = alpha * (N @ de)
         Rt = rotation.transpose(0, 2, 1)
-        target = origin[:, None, :] + mean.reshape(m, b, d) @ Rt
-        dtheta = (target.reshape(m, p) - task_pos) @ Z
-        dtheta += t
-        Y = (Rt[:, None] @ J.reshape(b, d, k)).reshape(m * p, k)
-        u = np.matvec(Y.reshape(m, p, k), dtheta).reshape(m * p)
-        YtW = Y.T * (1.0 / np.maximum(var.reshape(m * p), MIN_VARIANCE))
-        Lam = YtW @ Y
+        target = np.matmul(mean.reshape(m, b, d), Rt)
+        target += origin[:, None, :]
+        dx = target.reshape(m, p)
+        dx -= task_pos
+        dtheta = dx.dot(Z)
+        dtheta += alpha * N.dot(de)
+        Y = np.matmul(Rt[:, None], J.reshape(b, d, k)).reshape(m, p, k)
+        u = np.matvec(Y, dtheta).reshape(m * p)
+        Y = Y.reshape(m * p, k)
+        YtW = Y.T * np.reciprocal(np.maximum(var.reshape(m * p), _MIN_VARIANCE))
+        Lam = YtW.dot(Y)
         Lam += m * null_prec
-        eta += YtW @ u
-        eta += null_prec @ dtheta.sum(axis=0)
+        eta += YtW.dot(u)
+        eta += null_prec.dot(dtheta.sum(axis=0))
     Lam.reshape(k * k)[:: k + 1] += lam_theta + ridge
     if return_cov:  # line 19
         cov = _spd_solve(Lam, _eye(k))
-        return cov @ eta, cov
+        return cov.dot(eta), cov
     return _spd_solve(Lam, eta), None
 
 

@@ -195,7 +195,7 @@ class _DeltaAction:
         g = self.gripper
         out = [v / self.max_step for v in step]
         if g is not None:
-            grip = float(np.asarray(gripper, dtype=float).reshape(-1)[0])
+            grip = float(np.asarray(gripper).item(0))
             out.append(-1.0 + 2.0 * (grip - g.closed) / (g.open - g.closed))
         return np.array([[min(max(v, -1.0), 1.0) for v in out]], dtype=np.float32)
 

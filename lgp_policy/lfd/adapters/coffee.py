@@ -74,7 +74,8 @@ class PandaModel:
     """The coffee env's Panda as a batched ``RobotModel`` (grasp point, world frame).
 
     One state ``(7,)`` goes through ``PandaKinematics`` (a plain-float chain, fastest for one);
-    a batch ``(n, 7)`` through the same chain written with ``(n, 3, 3)`` matrices.
+    a batch ``(n, 7)`` through the same chain on columns ``(n,)`` of numbers (the same operations
+    in the same order, so the same results).
     """
 
     dim = 3
@@ -86,48 +87,60 @@ class PandaModel:
         self.base_position = self._one.base_position
         self.joint_lower = self._one.joint_lower
         self.joint_upper = self._one.joint_upper
-        roll = _kin._JOINT_ROLL
-        self._xyz = _kin._JOINT_XYZ
-        self._rx = Rotation.from_euler("x", roll[:, None]).as_matrix()
-        self._hand = Rotation.from_euler("z", _kin._HAND_YAW).as_matrix()
 
-    def _chain(self, q: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    def _chain(self, q: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+        """``PandaKinematics``'s chain for a batch ``(n, 7)``: grasp point ``(n, 3)``, hand
+        rotation ``(n, 3, 3)`` and geometric Jacobian ``(n, 6, 7)``. Each quantity is a list of
+        ``(n,)`` columns: the frame's axes ``x, y, z`` and origin ``p``."""
         n = q.shape[0]
-        R = np.broadcast_to(np.eye(3), (n, 3, 3))
-        p = np.broadcast_to(self.base_position, (n, 3)).copy()
-        c, s = np.cos(q), np.sin(q)
-        axes = np.empty((n, 7, 3))
-        origins = np.empty((n, 7, 3))
+        cos, sin = np.cos(q).T, np.sin(q).T
+        zero, one = np.zeros(n), np.ones(n)
+        x, y, z = [one, zero, zero], [zero, one, zero], [zero, zero, one]
+        p = [np.full(n, v) for v in self.base_position.tolist()]
+        J = np.empty((n, 6, 7))
+        origins = []
         for i in range(7):
-            p = p + R @ self._xyz[i]
-            Rz = np.zeros((n, 3, 3))
-            Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = (
-                c[:, i],
-                -s[:, i],
-                s[:, i],
-                c[:, i],
-                1.0,
-            )
-            R = (R @ self._rx[i]) @ Rz
-            axes[:, i] = R[:, :, 2]
-            origins[:, i] = p
-        ee = p + _kin.GRASP_OFFSET * R[:, :, 2]
-        return ee, R @ self._hand, axes, origins
+            t0, t1, t2 = _kin._XYZ[i]
+            p = [p[a] + (t0 * x[a] + t1 * y[a] + t2 * z[a]) for a in range(3)]
+            cr, sr = _kin._ROLL_CS[i]
+            if sr != 0.0:  # R @ Rx(roll)
+                y, z = (
+                    [cr * y[a] + sr * z[a] for a in range(3)],
+                    [cr * z[a] - sr * y[a] for a in range(3)],
+                )
+            c, s = cos[i], sin[i]  # R @ Rz(q_i)
+            x, y = [c * x[a] + s * y[a] for a in range(3)], [c * y[a] - s * x[a] for a in range(3)]
+            for a in range(3):
+                J[:, 3 + a, i] = z[a]
+            origins.append(p)
+        d = _kin.GRASP_OFFSET
+        ee = [p[a] + d * z[a] for a in range(3)]
+        for i, o in enumerate(origins):  # z_i x (p_ee - p_i)
+            a0, a1, a2 = J[:, 3, i], J[:, 4, i], J[:, 5, i]
+            r0, r1, r2 = ee[0] - o[0], ee[1] - o[1], ee[2] - o[2]
+            J[:, 0, i] = a1 * r2 - a2 * r1
+            J[:, 1, i] = a2 * r0 - a0 * r2
+            J[:, 2, i] = a0 * r1 - a1 * r0
+        ch, sh = _kin._HAND_CS  # hand frame = R @ Rz(hand yaw)
+        R = np.empty((n, 3, 3))
+        for a in range(3):
+            R[:, a, 0] = ch * x[a] + sh * y[a]
+            R[:, a, 1] = ch * y[a] - sh * x[a]
+            R[:, a, 2] = z[a]
+        return np.stack(ee, axis=1), R, J
 
     def forward_pose(self, q: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         q = np.asarray(q, dtype=float)
         if q.ndim == 1:
             return self._one.forward_pose(q)
-        ee, R, _, _ = self._chain(q.reshape(-1, 7))
+        ee, R, _ = self._chain(q.reshape(-1, 7))
         return ee.reshape(*q.shape[:-1], 3), R.reshape(*q.shape[:-1], 3, 3)
 
     def jacobian(self, q: ArrayLike) -> NDArray[np.float64]:
         q = np.asarray(q, dtype=float)
         if q.ndim == 1:
             return self._one.jacobian(q)
-        ee, _, axes, origins = self._chain(q.reshape(-1, 7))
-        Jp = np.cross(axes, ee[:, None, :] - origins)  # z_i x (p_ee - p_i), (n, 7, 3)
-        J = np.concatenate([Jp, axes], axis=2).transpose(0, 2, 1)
+        _, _, J = self._chain(q.reshape(-1, 7))
         return J.reshape(*q.shape[:-1], 6, 7)
 
     def pose_and_jacobian(
@@ -137,9 +150,7 @@ class PandaModel:
         if q.shape[0] == 1:  # one pass of the plain-float chain
             p, R, J = self._one.pose_and_jacobian(q[0])
             return p[None], R[None], J[None]
-        ee, R, axes, origins = self._chain(q)
-        Jp = np.cross(axes, ee[:, None, :] - origins)
-        return ee, R, np.concatenate([Jp, axes], axis=2).transpose(0, 2, 1)
+        return self._chain(q)
 
     def __repr__(self) -> str:
         return f"PandaModel(base_position={self.base_position.tolist()})"
