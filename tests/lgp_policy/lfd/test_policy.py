@@ -16,7 +16,7 @@ import pytest
 
 import gym_coffee
 from gym_coffee.demonstrations import Demonstration, DemonstrationSet
-from gym_coffee.env import OBS_DIM, obs_part
+from gym_coffee.env import OBS_DIM, OBS_SLICES, obs_part
 from lgp_policy.lfd.policy import GPDemonstrationPolicy, PolicyFileError, PolicyState
 
 N_STEPS = 40
@@ -299,6 +299,45 @@ def test_one_observation_matches_the_batch_path_on_a_rollout(policy, single_matc
             obs, *_ = env.step(action)
     env.close()
     single_matches_batch(policy, rows, starts)
+
+
+def test_the_coffee_adapter_reads_one_row_as_it_reads_a_batch(demos):
+    """The one-row read (floats, the control loop) gives the batch read's arrays bit for bit:
+    the cup held and not, the machine on either side, tracked and initial cup positions."""
+    from lgp_policy.lfd.adapters import rotation_about_z, rotation_from_angle
+    from lgp_policy.lfd.adapters.coffee import CoffeeAdapter
+
+    rng = np.random.default_rng(0)
+    obs = np.concatenate([d.observations for d in demos]).astype(float)
+    obs[:, OBS_SLICES["machine_yaw"]] = rng.uniform(-np.pi, np.pi, (len(obs), 1))
+    obs[:, OBS_SLICES["machine_pos"].start + 1] *= rng.choice([-1.0, 1.0], len(obs))
+    held = rng.random(len(obs)) < 0.5  # the grasp point at the cup's middle, fingers on the cup
+    cup = obs[held, OBS_SLICES["cup_pos"]]
+    obs[held, OBS_SLICES["ee_pos"]] = (
+        cup + np.array([0.0, 0.0, 0.05]) + rng.normal(0, 0.01, cup.shape)
+    )
+    obs[held, OBS_SLICES["gripper"]] = rng.uniform(0.03, 0.08, (int(held.sum()), 1))
+    for track in (True, False):
+        adapter = CoffeeAdapter(track_cup=track)
+        batch = adapter.read(obs)
+        assert 0 < batch.events["cup_held"].sum() < len(obs)
+        for i in range(len(obs)):
+            one = adapter.read(obs[i : i + 1])
+            np.testing.assert_array_equal(one.time, batch.time[i : i + 1])
+            np.testing.assert_array_equal(one.state, batch.state[i : i + 1])
+            for name, (pos, rot) in batch.frames.items():
+                np.testing.assert_array_equal(one.frames[name][0], pos[i : i + 1])
+                np.testing.assert_array_equal(one.frames[name][1], rot[i : i + 1])
+            for kind in ("valid", "events"):
+                a, b = getattr(one, kind), getattr(batch, kind)
+                assert a.keys() == b.keys()
+                for key in a:
+                    np.testing.assert_array_equal(a[key], b[key][i : i + 1])
+    angles = rng.uniform(-10.0, 10.0, 50)
+    for dim in (2, 3):
+        batch_rot = rotation_from_angle(angles, dim)
+        for i, a in enumerate(angles.tolist()):
+            np.testing.assert_array_equal(rotation_about_z(a, dim), batch_rot[i : i + 1])
 
 
 # ------------------------------------------------------------------ posture clusters (issue 11)

@@ -291,7 +291,7 @@ def test_without_frames_each_joint_follows_its_estimate():
 def test_coffee_panda_task_points_one_pass_equal_the_batch_and_finite_differences():
     """The Panda's pose and Jacobian of one pass of the chain (one state) give the same task
     vector (grasp point and the approach point 0.1 m behind it) and Jacobian as the batched
-    chain, and the Jacobian is the task vector's derivative."""
+    chain (the chain bit for bit), and the Jacobian is the task vector's derivative."""
     from lgp_policy.lfd.adapters.coffee import PandaModel
     from lgp_policy.lfd.policy import hand_points
 
@@ -299,7 +299,10 @@ def test_coffee_panda_task_points_one_pass_equal_the_batch_and_finite_difference
     rng = np.random.default_rng(3)
     qs = rng.uniform(robot.joint_lower, robot.joint_upper, (6, 7))
     xb, Jb = hand_points(robot, qs, 0.1)
+    pose = robot.pose_and_jacobian(qs)
     for i, q in enumerate(qs):
+        for one, batch in zip(robot._one.pose_and_jacobian(q), pose, strict=True):
+            np.testing.assert_array_equal(one, batch[i])
         x1, J1 = hand_points(robot, q, 0.1)
         np.testing.assert_allclose(x1, xb[i], rtol=0, atol=1e-14)
         np.testing.assert_allclose(J1, Jb[i], rtol=0, atol=1e-14)
@@ -313,3 +316,26 @@ def test_coffee_panda_task_points_one_pass_equal_the_batch_and_finite_difference
             axis=1,
         )
         np.testing.assert_allclose(J1, fd, atol=1e-8)
+
+
+def test_one_row_limit_and_action_equal_the_batch():
+    """The step limit and the joint-delta action map of one row (on floats) give the batch's
+    rows bit for bit: within and beyond the limit, clipped actions, a NaN (all NaN after the
+    limit, as the batch does)."""
+    from lgp_policy.lfd.robots import GripperSpec, JointDeltaAction
+
+    rng = np.random.default_rng(7)
+    dq = rng.normal(0.0, 0.05, (40, 7))
+    dq[3, 2] = np.nan
+    dq[5] = 0.0
+    gripper = rng.uniform(-0.01, 0.09, 40)
+    limited = limit_step(dq, 0.05)
+    action_map = JointDeltaAction(0.04, GripperSpec(closed=0.0, open=0.08))
+    actions = action_map(dq, limited, gripper)
+    assert np.all(np.isnan(limited[3])) and np.any(np.abs(actions) == 1.0)
+    for i in range(len(dq)):
+        one = limit_step(dq[i : i + 1], 0.05)
+        np.testing.assert_array_equal(one, limited[i : i + 1])
+        np.testing.assert_array_equal(
+            action_map(dq[i : i + 1], one, gripper[i : i + 1]), actions[i : i + 1]
+        )
