@@ -775,7 +775,7 @@ class GPDemonstrationPolicy:
         parts = []
         for name in self.frame_names_[1:]:
             parts += [state.position[name][0], ROTATION_LENGTH * state.rotation[name].reshape(-1)]
-        diff = np.concatenate(parts) - self.layout_features_  # type: ignore[operator]
+        diff = np.concatenate(parts) - self.layout_features_
         nearest = np.argmin(np.einsum("jk,jk->j", diff, diff))
         return int(self.posture_labels_[nearest])  # type: ignore[index]
 

@@ -423,6 +423,9 @@ def test_the_nearest_layout_chooses_the_posture(postures):
         side = 1.0 if policy.posture_labels_[i] == 0 else -1.0
         dq = policy.predict_distribution(obs, episode_start=[True]).joint_increment[0]
         assert policy._posture_of(policy._memory)[0] == policy.posture_labels_[i]
+        assert policy._posture_one(policy._memory) == policy.posture_labels_[i]  # one row
+        two, _ = policy.predict(np.stack([obs, obs]), episode_start=[True, True])
+        np.testing.assert_array_equal(two[0], policy.predict(obs, episode_start=[True])[0])
         dq_global = global_.predict_distribution(obs, episode_start=[True]).joint_increment[0]
         assert side * dq[4] > 0.05
         assert abs(dq_global[4]) < 0.5 * abs(dq[4])
