@@ -308,10 +308,6 @@ def _hand_points_one(
     return x, T.dot(J6[0])[None]
 
 
-_NO_AIM = np.full(1, np.nan)  # one environment that is not waiting (read-only)
-_NO_AIM.setflags(write=False)
-
-
 def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
     """Times at which a demonstration's gripper command crosses ``midpoint`` (closing or opening),
     linearly interpolated between control steps."""
@@ -996,10 +992,12 @@ class GPDemonstrationPolicy:
         return math.sqrt(dist) <= tol
 
     def _advance_one(
-        self, state: PolicyState, observed: Any, hand: NDArray[np.float64] | None
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        self, state: PolicyState, observed: Any, hand: list[float] | None
+    ) -> tuple[float, float | None]:
         """:meth:`_advance` for one environment on plain floats (the same operations in the same
-        order, so the same results; a batch of one is the common control loop)."""
+        order, so the same results; a batch of one is the common control loop): the hand's
+        grasp point as floats; returns the clock and the phase aimed at (``None``: not
+        waiting)."""
         t_obs = observed.time
         last = float(state.last_time[0])
         fresh = bool(state.fresh[0])
@@ -1017,7 +1015,7 @@ class GPDemonstrationPolicy:
         waited = 0.0 if fresh else float(state.waited[0])
         s = clock / self.duration_
         hold = False
-        aim = math.nan
+        aim: float | None = None
         if self.max_wait > 0:
             lead = (self.lookahead + 1.0) * self.control_dt_ / self.duration_
             for j, (s_l, frame) in enumerate(self.landmarks_ if hand is not None else []):
@@ -1026,10 +1024,10 @@ class GPDemonstrationPolicy:
                     flag = state.reached[j] = np.zeros(1, dtype=bool)
                 reached = not fresh and bool(flag[0])
                 if not reached and s >= s_l - lead and hand is not None:  # due
-                    reached = self._hand_at_landmark_one(state, frame, s_l, hand[0].tolist())
+                    reached = self._hand_at_landmark_one(state, frame, s_l, hand)
                     if not reached:
                         hold = True
-                        if math.isnan(aim):
+                        if aim is None:
                             aim = s_l
                 flag[0] = reached
             events = observed.events
@@ -1044,12 +1042,14 @@ class GPDemonstrationPolicy:
                 flag[0] = seen
                 hold = hold or (not seen and s >= s_e)
         hold = hold and waited + dt <= self.max_wait and not fresh
+        if hold:
+            clock, waited = clock - dt, waited + dt
         # written in place: the state's arrays are its own (PolicyState.new, _advance)
-        state.clock[0] = clock - dt if hold else clock
-        state.waited[0] = waited + dt if hold else waited
+        state.clock[0] = clock
+        state.waited[0] = waited
         state.last_time[0] = now
         state.fresh[0] = False
-        return state.clock, np.array([aim]) if hold else _NO_AIM
+        return clock, aim if hold else None
 
     def _filter_one(self, state: PolicyState, fresh: bool, observed: Any) -> None:
         """:meth:`_filter_frames` for one environment on plain floats."""
@@ -1237,14 +1237,14 @@ class GPDemonstrationPolicy:
         if len(self.frame_names_) > 1:
             x, J = hand_points(self.robot_, q, self.approach_offset_)
         clock, aim = self._advance_one(
-            mem, observed, None if x is None else x[:, : self.robot_.dim]
+            mem, observed, None if x is None else x[0, : self.robot_.dim].tolist()
         )
         if own:
             self._memory = mem
-        s = (float(clock[0]) + self.lookahead * self.control_dt_) / self.duration_
+        s = (clock + self.lookahead * self.control_dt_) / self.duration_
         row = grip_row = self._row(s)
-        if not math.isnan(aim[0]):  # waiting to reach a gripper event's target: aim at it
-            row = self._row(float(aim[0]))
+        if aim is not None:  # waiting to reach a gripper event's target: aim at it
+            row = self._row(aim)
         if self.posture_labels_ is None:
             jm, jv = self._cols[JOINT_FRAME]
         else:  # the joint model of the posture the nearest demonstrated layout was shown in
@@ -1278,9 +1278,19 @@ class GPDemonstrationPolicy:
         jm_joint = self._cols[JOINT_FRAME][0]
         gripper = grip_row[jm_joint][k : k + 1] if joint_mean.shape[0] > k else np.zeros(1)
         action = self.adapter_.action_map(q, limit_step(dq, self.max_joint_step_), gripper)
+        if not cov:  # predict: the action and the state are all it returns
+            return single, mem, None, action, dq, None, gripper, row[None]
         phase = np.array([min(max(s, 0.0), 1.0)])
-        fused = None if fused is None else fused[None]
-        return single, mem, phase, action, dq, fused, gripper, row[None]
+        return (
+            single,
+            mem,
+            phase,
+            action,
+            dq,
+            None if fused is None else fused[None],
+            gripper,
+            row[None],
+        )
 
     def _state_of(self, observed: Any, n: int) -> NDArray[np.float64]:
         """The robot state ``(n, k)`` the adapter read, checked against the robot."""

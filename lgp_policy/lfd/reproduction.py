@@ -278,12 +278,18 @@ def _step_one(
     Cholesky solver."""
     k = q.shape[0]
     de = joint_target - q  # line 15
-    lam_theta = np.reciprocal(np.maximum(joint_var, _MIN_VARIANCE))
-    eta = lam_theta * de
     if frames is None or task_pos is None or J is None:
+        lam_theta = np.reciprocal(np.maximum(joint_var, _MIN_VARIANCE))
+        eta = lam_theta * de
         Lam = np.zeros((k, k))
     else:
         origin, rotation, mean, var = frames
+        # the precisions of the joint estimate and of every frame's points at once
+        prec = np.reciprocal(
+            np.maximum(np.concatenate((joint_var, var.reshape(-1))), _MIN_VARIANCE)
+        )
+        lam_theta = prec[:k]
+        eta = lam_theta * de
         m, d = origin.shape
         p = J.shape[0]
         b = p // d
@@ -305,7 +311,7 @@ def _step_one(
         Y = np.matmul(Rt[:, None], J.reshape(b, d, k)).reshape(m, p, k)
         u = np.matvec(Y, dtheta).reshape(m * p)
         Y = Y.reshape(m * p, k)
-        YtW = Y.T * np.reciprocal(np.maximum(var.reshape(m * p), _MIN_VARIANCE))
+        YtW = Y.T * prec[k:]
         Lam = YtW.dot(Y)
         Lam += m * null_prec
         eta += YtW.dot(u)
