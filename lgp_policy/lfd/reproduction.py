@@ -362,7 +362,9 @@ def _step(
         dtheta = (target.reshape(n, m, p) - task_pos[:, None, :]) @ Z
         dtheta += t[:, None, :]
         # J^T W J and J^T W J dtheta in each frame's axes: Y = R^T J per point, W = diag(1/var)
-        Y = (Rt[:, :, None] @ J.reshape(n, 1, b, d, k)).reshape(n, m * p, k)
+        Jb = J.reshape(n, b, d, k).transpose(0, 2, 1, 3).reshape(n, d, b * k)  # points side by side
+        Y = (Rt.reshape(n, m * d, d) @ Jb).reshape(n, m, d, b, k)  # one product per robot
+        Y = Y.transpose(0, 1, 3, 2, 4).reshape(n, m * p, k)
         u = np.matvec(Y.reshape(n, m, p, k), dtheta).reshape(n, m * p)
         YtW = Y.mT * (1.0 / np.maximum(var, MIN_VARIANCE)).reshape(n, 1, m * p)
         Lam = YtW @ Y  # sum of the frames' Lambda^(j) (line 17, information form)
