@@ -249,10 +249,13 @@ def hand_points(
     """
     q = np.asarray(q, dtype=float)
     if q.ndim == 1:
+        if offset is not None:
+            return _hand_points_one(robot, q, offset)
         x, J = hand_points(robot, q[None], offset)
         return x[0], J[0]
     if q.shape[0] == 1 and offset is not None:
-        return _hand_points_one(robot, q, offset)
+        x, J = _hand_points_one(robot, q[0], offset)
+        return x[None], J[None]
     p, R, J6 = _pose_and_jacobian(robot, q)
     d = p.shape[-1]
     Jp = J6[:, :d]
@@ -276,7 +279,8 @@ def hand_points(
 def _pose_and_jacobian(
     robot: Any, q: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """``forward_pose`` and ``jacobian`` of a batch, in one pass where the robot offers it."""
+    """``forward_pose`` and ``jacobian`` of one state ``(k,)`` or a batch ``(n, k)``, in one pass
+    where the robot offers it."""
     both = getattr(robot, "pose_and_jacobian", None)
     if both is not None:
         return both(q)
@@ -287,12 +291,12 @@ def _pose_and_jacobian(
 def _hand_points_one(
     robot: Any, q: NDArray[np.float64], offset: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`hand_points` with an offset for one ``q (1, k)`` (``d = 3``), in a few calls:
-    ``omega_i x z = -[z]_x omega_i``, so ``[J_p; J_p - offset (omega x z)] = T J6`` with
+    """:func:`hand_points` with an offset for one state ``q (k,)`` (``d = 3``), unbatched, in a few
+    calls: ``omega_i x z = -[z]_x omega_i``, so ``[J_p; J_p - offset (omega x z)] = T J6`` with
     ``T = [[I, 0], [I, offset [z]_x]]``."""
     p, R, J6 = _pose_and_jacobian(robot, q)
-    p0, p1, p2 = p[0].tolist()
-    z0, z1, z2 = R[0, :, 2].tolist()
+    p0, p1, p2 = p.tolist()
+    z0, z1, z2 = R[:, 2].tolist()
     a, b, c = offset * z0, offset * z1, offset * z2
     T = np.array(
         [
@@ -304,8 +308,8 @@ def _hand_points_one(
             [0.0, 0.0, 1.0, -b, a, 0.0],
         ]
     )
-    x = np.array([[p0, p1, p2, p0 - a, p1 - b, p2 - c]])
-    return x, T.dot(J6[0])[None]
+    x = np.array([p0, p1, p2, p0 - a, p1 - b, p2 - c])
+    return x, T.dot(J6)
 
 
 def gripper_events(tr: Trajectory, midpoint: float) -> NDArray[np.float64]:
@@ -1235,9 +1239,9 @@ class GPDemonstrationPolicy:
         k = q.shape[1]
         x = J = None
         if len(self.frame_names_) > 1:
-            x, J = hand_points(self.robot_, q, self.approach_offset_)
+            x, J = hand_points(self.robot_, q[0], self.approach_offset_)  # unbatched
         clock, aim = self._advance_one(
-            mem, observed, None if x is None else x[0, : self.robot_.dim].tolist()
+            mem, observed, None if x is None else x[: self.robot_.dim].tolist()
         )
         if own:
             self._memory = mem
@@ -1259,7 +1263,6 @@ class GPDemonstrationPolicy:
                 block[:, 0],
                 block[:, 1],
             )
-            x, J = x[0], J[0]
         joint_mean = row[jm]
         dq, fused = reproduction_step(
             q[0],

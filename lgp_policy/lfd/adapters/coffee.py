@@ -146,7 +146,10 @@ class PandaModel:
     def pose_and_jacobian(
         self, q: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """``forward_pose`` and ``jacobian`` of a batch ``(n, 7)`` in one pass of the chain."""
+        """``forward_pose`` and ``jacobian`` of one state ``(7,)`` or a batch ``(n, 7)`` in one
+        pass of the chain."""
+        if q.ndim == 1:
+            return self._one.pose_and_jacobian(q)
         if q.shape[0] == 1:  # one pass of the plain-float chain
             p, R, J = self._one.pose_and_jacobian(q[0])
             return p[None], R[None], J[None]
