@@ -285,9 +285,7 @@ def _step_one(
     else:
         origin, rotation, mean, var = frames
         # the precisions of the joint estimate and of every frame's points at once
-        prec = np.reciprocal(
-            np.maximum(np.concatenate((joint_var, var.reshape(-1))), _MIN_VARIANCE)
-        )
+        prec = np.reciprocal(np.maximum(np.concatenate((joint_var, var), axis=None), _MIN_VARIANCE))
         lam_theta = prec[:k]
         eta = lam_theta * de
         m, d = origin.shape

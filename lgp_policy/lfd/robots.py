@@ -197,7 +197,7 @@ class _DeltaAction:
         if g is not None:
             grip = float(np.asarray(gripper).item(0))
             out.append(-1.0 + 2.0 * (grip - g.closed) / (g.open - g.closed))
-        return np.array([[min(max(v, -1.0), 1.0) for v in out]], dtype=np.float32)
+        return np.array([min(max(v, -1.0), 1.0) for v in out], dtype=np.float32)[None]
 
 
 class JointDeltaAction(_DeltaAction):

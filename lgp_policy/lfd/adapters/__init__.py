@@ -107,8 +107,8 @@ def rotation_about_z(angle: float, dim: int) -> NDArray[np.float64]:
     cached = _ROTATIONS.get(key)
     if cached is None:
         c, s = math.cos(angle), math.sin(angle)
-        rows = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]] if dim == 3 else [[c, -s], [s, c]]
-        cached = np.array([rows])
+        flat = [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0] if dim == 3 else [c, -s, s, c]
+        cached = np.array(flat).reshape(1, dim, dim)
         cached.setflags(write=False)
         if len(_ROTATIONS) >= _MAX_CACHED_ROTATIONS:
             _ROTATIONS.clear()

@@ -274,11 +274,12 @@ class CoffeeAdapter:
         mx, my, _ = v[self._machine]
         yaw = v[self._yaw]
         not_held = _FALSE if held else _TRUE
+        angle = _cup_angle_one(cx, cy, mx, my, yaw)
         return Observed(
             time=obs[:, self._time],
             state=obs[:, self._joints],
             frames={
-                "cup": (obs[:, cup], rotation_about_z(_cup_angle_one(cx, cy, mx, my, yaw), 3)),
+                "cup": (obs[:, cup], rotation_about_z(angle, 3)),
                 "machine": (obs[:, self._machine], rotation_about_z(yaw, 3)),
             },
             valid={"cup": not_held} if self.track_cup else {},
