@@ -1003,20 +1003,20 @@ class GPDemonstrationPolicy:
         grasp point as floats; returns the clock and the phase aimed at (``None``: not
         waiting)."""
         t_obs = observed.time
-        last = float(state.last_time[0])
-        fresh = bool(state.fresh[0])
+        last = float(state.last_time.item(0))  # (item: a Python number, no numpy scalar)
+        fresh = bool(state.fresh.item(0))
         if t_obs is not None:
-            t = float(t_obs[0])
+            t = float(t_obs.item(0))
             fresh = fresh or t < last - 1e-9
             dt = 0.0 if fresh else t - last
             now = t
-            clock = t if fresh else float(state.clock[0]) + dt
+            clock = t if fresh else float(state.clock.item(0)) + dt
         else:
             dt = 0.0 if fresh else self.control_dt_
             now = 0.0 if fresh else last + self.control_dt_
-            clock = 0.0 if fresh else float(state.clock[0]) + dt
+            clock = 0.0 if fresh else float(state.clock.item(0)) + dt
         self._filter_one(state, fresh, observed)
-        waited = 0.0 if fresh else float(state.waited[0])
+        waited = 0.0 if fresh else float(state.waited.item(0))
         s = clock / self.duration_
         hold = False
         aim: float | None = None
@@ -1026,7 +1026,7 @@ class GPDemonstrationPolicy:
                 flag = state.reached.get(j)
                 if flag is None:
                     flag = state.reached[j] = np.zeros(1, dtype=bool)
-                reached = not fresh and bool(flag[0])
+                reached = not fresh and bool(flag.item(0))
                 if not reached and s >= s_l - lead and hand is not None:  # due
                     reached = self._hand_at_landmark_one(state, frame, s_l, hand)
                     if not reached:
@@ -1042,7 +1042,7 @@ class GPDemonstrationPolicy:
                 flag = state.seen.get(ev)
                 if flag is None:
                     flag = state.seen[ev] = np.zeros(1, dtype=bool)
-                seen = (not fresh and bool(flag[0])) or bool(observed_flag[0])
+                seen = (not fresh and bool(flag.item(0))) or bool(observed_flag.item(0))
                 flag[0] = seen
                 hold = hold or (not seen and s >= s_e)
         hold = hold and waited + dt <= self.max_wait and not fresh
@@ -1064,7 +1064,7 @@ class GPDemonstrationPolicy:
                 self._filter_frames(state, np.array([fresh]), observed)  # raises the error
             z_arr, R = observed.frames[name]
             flag = observed.valid.get(name)
-            valid = True if flag is None else bool(flag[0])
+            valid = True if flag is None else bool(flag.item(0))
             if name not in state.position:
                 state.position[name] = z_arr.copy()
                 state.variance[name] = np.full(1, r)
@@ -1076,8 +1076,8 @@ class GPDemonstrationPolicy:
                 if take:
                     pos[0] = z_arr[0]
             else:
-                var = float(state.variance[name][0])
-                out = int(state.outliers[name][0])
+                var = float(state.variance[name].item(0))
+                out = int(state.outliers[name].item(0))
                 z = z_arr[0].tolist()
                 p = pos[0].tolist()
                 var_p = var + q
