@@ -283,12 +283,12 @@ class CoffeeEnv(gym.Env, EzPickle):
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
     another process). By default (``exact_reset=True``) every reset rebuilds the world
-    (``resetSimulation`` and reload: ~20 ms, ~80 ms when rendering, which loads the visual meshes;
-    no memory growth), so every episode equals a fresh
-    env's with the same seed, whatever ran before: evaluation results do not depend on how episodes
-    are spread over workers. ``exact_reset=False`` keeps the bodies loaded and re-poses them (~1 ms,
-    no memory growth), but Bullet's broadphase keeps some history (the order of its pair cache), so
-    an episode with contacts in a *reused* env can then differ from a fresh env's in the last bits,
+    (``resetSimulation`` and reload: ~20 ms, ~25 ms when rendering; no memory growth), so every
+    episode equals a fresh env's with the same seed, whatever ran before: evaluation results do not
+    depend on how episodes are spread over workers. ``exact_reset=False`` keeps the bodies loaded
+    and re-poses them (~1 ms, no memory growth), but Bullet's broadphase keeps some history (the
+    order of its pair cache), so an episode with contacts in a *reused* env can then differ from a
+    fresh env's in the last bits,
     and the difference can grow over a contact-rich episode (e.g. 1e-2 rad after a grasp).
 
     Pickling (``EzPickle``) keeps the constructor arguments only: the copy is a fresh env, and its
@@ -414,7 +414,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
-        elif self.exact_reset:  # an empty world, loaded afresh: ~20 ms (~80 ms with visual meshes)
+        elif self.exact_reset:  # an empty world, loaded afresh: ~20 ms
             self.sim.reset_world()
             self._load()
         # Otherwise the bodies stay loaded (removing and reloading single bodies leaked memory in

@@ -198,17 +198,20 @@ class Simulation:
         use_fixed_base: bool = False,
         package_asset: bool = True,
         self_collision: bool = False,
+        visual_shapes: bool = True,
     ) -> int:
         """Load a URDF as body ``name``; ``package_asset`` picks gym-coffee's assets over
         pybullet_data's; ``self_collision`` lets the body's links collide with each other, a link
-        with its parent included. Visual shapes are loaded only if :attr:`visual_shapes`."""
+        with its parent included. Visual shapes are loaded only if :attr:`visual_shapes` and
+        ``visual_shapes``; without them PyBullet draws the collision shapes (the physics is the
+        same either way)."""
         path = os.path.join(ASSETS_DIR if package_asset else pybullet_data.getDataPath(), file_name)
         flags = pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES
         if self_collision:
             flags |= (
                 pybullet.URDF_USE_SELF_COLLISION | pybullet.URDF_USE_SELF_COLLISION_INCLUDE_PARENT
             )
-        if not self.visual_shapes:
+        if not (self.visual_shapes and visual_shapes):
             flags |= pybullet.URDF_IGNORE_VISUAL_SHAPES
         body = self.p.loadURDF(
             path,
@@ -301,6 +304,12 @@ class Simulation:
     def set_dynamics(self, name: str, link: int, **kwargs: float) -> None:
         """``changeDynamics`` of one link (keyword names as in PyBullet: lateralFriction, ...)."""
         self.p.changeDynamics(self.bodies[name], link, **kwargs)
+
+    def set_color(self, name: str, link: int, rgba: Sequence[float]) -> None:
+        """Colour of one link's shapes as drawn (``changeVisualShape``); a no-op unless
+        :attr:`visual_shapes`."""
+        if self.visual_shapes:
+            self.p.changeVisualShape(self.bodies[name], link, rgbaColor=[float(v) for v in rgba])
 
     def n_contacts(
         self, name_a: str, name_b: str, link_a: int | None = None, link_b: int | None = None
