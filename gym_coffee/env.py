@@ -288,8 +288,8 @@ class CoffeeEnv(gym.Env, EzPickle):
     depend on how episodes are spread over workers. ``exact_reset=False`` keeps the bodies loaded
     and re-poses them (~1 ms, no memory growth), but Bullet's broadphase keeps some history (the
     order of its pair cache), so an episode with contacts in a *reused* env can then differ from a
-    fresh env's in the last bits,
-    and the difference can grow over a contact-rich episode (e.g. 1e-2 rad after a grasp).
+    fresh env's in the last bits, and the difference can grow over a contact-rich episode (e.g.
+    1e-2 rad after a grasp).
 
     Pickling (``EzPickle``) keeps the constructor arguments only: the copy is a fresh env, and its
     episode starts anew at its next ``reset``.

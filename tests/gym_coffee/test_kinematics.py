@@ -124,3 +124,16 @@ def test_pose_and_jacobian_is_one_pass_of_the_same_chain():
     np.testing.assert_array_equal(kin.jacobian(q0), cached)
     with pytest.raises(ValueError, match="shape"):
         kin.pose_and_jacobian(np.zeros(6))
+
+
+def test_forward_kinematics_alone_gives_the_bits_of_the_full_chain():
+    """The position-only pass (what the env computes every step) equals the position of the full
+    chain bit for bit, with and without a cached pose of the same joints."""
+    rng = np.random.default_rng(5)
+    kin = PandaKinematics(base_position=(0.1, -0.2, 0.3))
+    for _ in range(50):
+        q = rng.uniform(kin.joint_lower, kin.joint_upper)
+        pos, _, _ = kin.pose_and_jacobian(q)
+        np.testing.assert_array_equal(PandaKinematics((0.1, -0.2, 0.3)).forward_kinematics(q), pos)
+        kin.jacobian(q)  # fills the cache for q
+        np.testing.assert_array_equal(kin.forward_kinematics(q), pos)
