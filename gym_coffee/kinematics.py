@@ -266,11 +266,10 @@ class PandaKinematics:
         for _ in range(iterations):
             pos, rot = self.forward_pose(q_target)
             err_p = position - pos
-            err_o = 0.5 * (
-                np.cross(rot[:, 0], rotation[:, 0])
-                + np.cross(rot[:, 1], rotation[:, 1])
-                + np.cross(rot[:, 2], rotation[:, 2])
-            )
+            # 1/2 sum_i rot[:, i] x rotation[:, i]: the three cross products in one call (rows),
+            # summed in the same order as three calls would (the same bits).
+            cross = np.cross(rot.T, rotation.T)
+            err_o = 0.5 * (cross[0] + cross[1] + cross[2])
             jac = self.jacobian(q_target)
             jac[3:] *= orientation_weight
             err = np.concatenate([err_p, orientation_weight * err_o])
