@@ -69,6 +69,7 @@ def run_pipeline(
     progress: bool = True,
     force: bool = False,
     env_id: str | None = None,
+    env_kwargs: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Record, fit, evaluate, plot; write everything into ``out``; return ``results.json``.
 
@@ -86,6 +87,8 @@ def run_pipeline(
         env_id: the task: a registered id or a level name of ``gym_coffee.LEVELS`` (default
             ``gym_coffee.ENV_ID``, the easy level); demonstrations and evaluation use it, and
             ``results.json`` records it.
+        env_kwargs: constructor keywords of the env (e.g. ``{"physics": "fast"}``), for the
+            demonstrations and the evaluation alike; ``results.json`` records them.
 
     Raises:
         FileExistsError: ``out`` holds a file of :data:`RUN_FILES` and ``force`` is false.
@@ -124,6 +127,7 @@ def run_pipeline(
     results: dict[str, Any] = {
         "status": "running",
         "env_id": env_id,
+        "env_kwargs": dict(env_kwargs or {}),
         "stages": [n for n, _ in stages],
         "done": [],
         "timings": {},
@@ -156,7 +160,7 @@ def run_pipeline(
     t0, cpu0 = time.perf_counter(), _cpu_seconds()
     with threadpool_limits(limits=1, user_api="blas"):
         with stage("record", f" ({n_demos}, seeds {seed}..{seed + n_demos - 1})"):
-            env = gym.make(env_id)
+            env = gym.make(env_id, **(env_kwargs or {}))
             try:
                 demos = gym_coffee.collect_demonstrations(
                     env, n=n_demos, seed=seed, progress=progress
@@ -193,6 +197,7 @@ def run_pipeline(
                 workers=workers,
                 progress=progress,
                 env_id=env_id,
+                env_kwargs=env_kwargs,
                 keep_first=True,
                 render_first=video,
             )
