@@ -378,8 +378,15 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.physics = check_choice("physics", physics, list(PHYSICS_PRESETS))
 
         timestep, n_substeps, iterations = PHYSICS_PRESETS[self.physics]
+        # Headless frames without shadows composite the bodies that stand still (floor, table,
+        # the machine's housing) from a backdrop (Simulation.render: the same pixels, ~3x faster).
+        static = CoffeeScene.STATIC_BODIES if not self.render_shadows else ()
         self.sim = Simulation(
-            render_mode, timestep=timestep, n_substeps=n_substeps, solver_iterations=iterations
+            render_mode,
+            timestep=timestep,
+            n_substeps=n_substeps,
+            solver_iterations=iterations,
+            static_bodies=static,
         )
         self.robot = Panda(self.sim)
         self.scene = CoffeeScene(self.sim)

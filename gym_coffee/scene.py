@@ -282,6 +282,9 @@ class CoffeeScene:
         if "cup" not in sim.bodies:
             sim.load_urdf("cup", "cup.urdf", self.layout.cup_pos)
 
+    #: Bodies whose base stands still during an episode (the machine's button moves; it is a link).
+    STATIC_BODIES = ("plane", "table", "machine")
+
     #: Bodies that move between episodes; their contact caches are cleared at every reset.
     MOVABLE_BODIES = ("machine", "cup")
 

@@ -460,3 +460,28 @@ def test_no_visual_meshes_unless_rendering_and_the_same_episodes():
     finally:
         plain.close()
         rendering.close()
+
+
+def test_composited_frames_equal_frames_drawn_at_once():
+    """Headless frames composite the floor, the table and the machine's housing from a backdrop
+    (drawn once per layout); the pixels are those of drawing the whole scene every frame, over
+    two layouts (the machine moves between them) and a moving arm and button."""
+    composited = make(gym_coffee.ENV_ID, render_mode="rgb_array", width=96, height=72)
+    direct = make(gym_coffee.ENV_ID, render_mode="rgb_array", width=96, height=72)
+    direct.unwrapped.sim.static_bodies = ()  # draw everything every frame
+    rng = np.random.default_rng(0)
+    try:
+        assert composited.unwrapped.sim.static_bodies == ("plane", "table", "machine")
+        for seed in (0, 1):
+            for env in (composited, direct):
+                env.reset(seed=seed)
+            for _ in range(4):
+                action = rng.uniform(-1, 1, 8).astype(np.float32)
+                frames = [env.render() for env in (composited, direct)]
+                np.testing.assert_array_equal(frames[0], frames[1])
+                assert (frames[0] != frames[0][0, 0]).any()  # a picture, not a blank
+                for env in (composited, direct):
+                    env.step(action)
+    finally:
+        composited.close()
+        direct.close()
