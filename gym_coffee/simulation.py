@@ -423,7 +423,13 @@ class Simulation:
         backdrop = self._backdrop
         static = [n for n in self.static_bodies if n in self.bodies]
         poses = tuple(p.getBasePositionAndOrientation(self.bodies[n]) for n in static)
-        key = (camera, tuple(static), poses)
+        # Fixed bases can flicker in the last bit (a quaternion renormalised every other physics
+        # step, and -0.0 for 0.0): the backdrop is redrawn when a pose moves by more than 1e-9.
+        key = (
+            camera,
+            tuple(static),
+            tuple((np.round(np.concatenate(pq), 9) + 0.0).tobytes() for pq in poses),
+        )
         if backdrop.key != key:
             for name, pose in zip(static, poses, strict=True):
                 backdrop.place(name, self._sources[name], pose)
