@@ -137,6 +137,8 @@ _BUTTON_TRAVEL = OBS_SLICES["button_travel"].start
 REWARD_TERMS = ("reach", "carry", "press", "stage", "success", "failure")
 _REWARD_KEYS = tuple(f"reward_{name}" for name in REWARD_TERMS)
 STAGE_BONUS = 1.0
+#: From the cup's base centre to its middle (the reach term's target).
+_CUP_MIDDLE = np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
 SUCCESS_BONUS = 10.0
 FAILURE_PENALTY = -10.0
 
@@ -624,11 +626,12 @@ class CoffeeEnv(gym.Env, EzPickle):
         scene = self.scene
         state = self._read_state() if state is None else state
         cup_pos = state.cup_pos
+        cup_x, cup_y, cup_z = cup_pos.tolist()  # the same doubles, as Python floats (cheaper)
         tilt = scene.cup_tilt(state.cup_quat)
         left, right, touched = scene.robot_cup_contacts()
         held = left and right
         # Grasped (latched): the cup is off the table between both fingers.
-        if held and not scene.cup_on_table() and cup_pos[2] > TABLE_TOP_Z + 0.005:
+        if held and not scene.cup_on_table() and cup_z > TABLE_TOP_Z + 0.005:
             self._grasped = True
         offset = cup_pos - scene.place_pos
         # At rest (speeds read only when the pose qualifies: the velocity query changes nothing).
@@ -649,8 +652,8 @@ class CoffeeEnv(gym.Env, EzPickle):
                 self._pressed_with_cup = True
         success = bool(self._grasped and placed and self._pressed_with_cup)
         off_table = bool(
-            cup_pos[2] < TABLE_TOP_Z - 0.05
-            or not (TABLE_X[0] < cup_pos[0] < TABLE_X[1] and TABLE_Y[0] < cup_pos[1] < TABLE_Y[1])
+            cup_z < TABLE_TOP_Z - 0.05
+            or not (TABLE_X[0] < cup_x < TABLE_X[1] and TABLE_Y[0] < cup_y < TABLE_Y[1])
         )
         tipped = bool(tilt > CUP_TIPPED_TILT and not held)
         failed = off_table or tipped
@@ -659,7 +662,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         previous_stage, self._stage = self._stage, stage
         terms = dict.fromkeys(REWARD_TERMS, 0.0)
         if self.reward_type == "dense":
-            cup_middle = cup_pos + np.array([0.0, 0.0, 0.5 * CUP_HEIGHT])
+            cup_middle = cup_pos + _CUP_MIDDLE
             if not self._grasped:
                 terms["reach"] = -float(np.linalg.norm(ee - cup_middle))
             elif not placed:

@@ -69,6 +69,11 @@ HEADLESS_COLORS: dict[int, tuple[float, float, float, float]] = {
     9: (0.25, 0.25, 0.27, 1.0),
     10: (0.25, 0.25, 0.27, 1.0),
 }
+# The constant limits as tuples of floats, passed to every command.
+_ARM_FORCES = tuple(ARM_FORCES.tolist())
+_ARM_MAX_VELOCITIES = tuple(JOINT_VELOCITY_LIMIT.tolist())
+_FINGER_FORCES = (FINGER_FORCE, FINGER_FORCE)
+_FINGER_MAX_VELOCITIES = (FINGER_MAX_VELOCITY, FINGER_MAX_VELOCITY)
 #: Gain of PyBullet's position controller (fraction of the error corrected per physics step).
 POSITION_GAIN = 0.3
 
@@ -143,8 +148,8 @@ class Panda:
             self.name,
             ARM_JOINTS,
             q_target,
-            ARM_FORCES,
-            JOINT_VELOCITY_LIMIT,
+            _ARM_FORCES,
+            _ARM_MAX_VELOCITIES,
             position_gain=POSITION_GAIN,
         )
         half = 0.5 * float(gripper_opening)
@@ -152,8 +157,8 @@ class Panda:
             self.name,
             FINGER_JOINTS,
             [half, half],
-            [FINGER_FORCE, FINGER_FORCE],
-            [FINGER_MAX_VELOCITY, FINGER_MAX_VELOCITY],
+            _FINGER_FORCES,
+            _FINGER_MAX_VELOCITIES,
             position_gain=POSITION_GAIN,
         )
 

@@ -40,6 +40,14 @@ class _Client(bullet_client.BulletClient):
         return attribute
 
 
+def _float_list(values: ArrayLike) -> list[float]:
+    """``values`` as a list of Python floats (a tuple of floats, e.g. a robot's constant limits,
+    without the round trip through numpy)."""
+    if isinstance(values, tuple) and all(type(v) is float for v in values):
+        return list(values)
+    return np.asarray(values, dtype=float).tolist()
+
+
 def display_available() -> bool:
     """Whether a GUI can open (on Linux: an X11 or Wayland display is set)."""
     if sys.platform.startswith("linux"):
@@ -310,13 +318,13 @@ class Simulation:
         control = self.p.setJointMotorControl2
         mode = pybullet.POSITION_CONTROL
         target_list: list[float] = np.asarray(targets, dtype=float).tolist()
-        force_list: list[float] = np.asarray(forces, dtype=float).tolist()
+        force_list: list[float] = _float_list(forces)
         gain = float(position_gain)
         if max_velocities is None:
             for j, t, f in zip(joints, target_list, force_list, strict=True):
                 control(body, j, mode, targetPosition=t, force=f, positionGain=gain)
         else:
-            vel: list[float] = np.asarray(max_velocities, dtype=float).tolist()
+            vel: list[float] = _float_list(max_velocities)
             for j, t, f, v in zip(joints, target_list, force_list, vel, strict=True):
                 control(body, j, mode, targetPosition=t, force=f, maxVelocity=v, positionGain=gain)
 
