@@ -62,6 +62,7 @@ JOINT_VELOCITY_LIMIT = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
 
 
 _XYZ = [tuple(row) for row in _JOINT_XYZ.tolist()]
+_EYE6, _EYE7 = np.eye(6), np.eye(7)
 _ROLL_CS = [(float(np.cos(r)), float(np.sin(r))) for r in _JOINT_ROLL]
 _HAND_CS = (float(np.cos(_HAND_YAW)), float(np.sin(_HAND_YAW)))
 
@@ -262,14 +263,19 @@ class PandaKinematics:
         share it.
         """
         q_target = q.copy()
-        eye6, eye7 = np.eye(6), np.eye(7)
+        eye6, eye7 = _EYE6, _EYE7
         for _ in range(iterations):
             pos, rot = self.forward_pose(q_target)
             err_p = position - pos
-            # 1/2 sum_i rot[:, i] x rotation[:, i]: the three cross products in one call (rows),
-            # summed in the same order as three calls would (the same bits).
-            cross = np.cross(rot.T, rotation.T)
-            err_o = 0.5 * (cross[0] + cross[1] + cross[2])
+            # 1/2 sum_i rot[:, i] x rotation[:, i], written out: each component of the three
+            # cross products is np.cross's a1 b2 - a2 b1 (no fused multiply-add), summed in the
+            # order of three np.cross calls (the same bits, without np.cross's axis handling).
+            cx = rot[1] * rotation[2] - rot[2] * rotation[1]
+            cy = rot[2] * rotation[0] - rot[0] * rotation[2]
+            cz = rot[0] * rotation[1] - rot[1] * rotation[0]
+            err_o = 0.5 * np.array(
+                [cx[0] + cx[1] + cx[2], cy[0] + cy[1] + cy[2], cz[0] + cz[1] + cz[2]]
+            )
             jac = self.jacobian(q_target)
             jac[3:] *= orientation_weight
             err = np.concatenate([err_p, orientation_weight * err_o])
