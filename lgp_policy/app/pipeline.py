@@ -92,7 +92,8 @@ def run_pipeline(
 
     Raises:
         FileExistsError: ``out`` holds a file of :data:`RUN_FILES` and ``force`` is false.
-        ValueError: ``env_id`` is neither a level name nor a registered id.
+        ValueError: ``env_id`` is neither a level name nor a registered id, or the env refuses
+            ``env_kwargs`` (its error, naming the argument).
     """
     import gymnasium as gym
     from threadpoolctl import threadpool_limits
@@ -121,6 +122,8 @@ def run_pipeline(
             f"{out} holds files of an earlier run ({', '.join(present)}); pass force=True "
             "(--force) to replace them, or choose a new folder"
         )
+    # The env of the demonstrations, made before any work: it checks env_kwargs.
+    record_env = gym.make(env_id, **(env_kwargs or {}))
     out.mkdir(parents=True, exist_ok=True)
     stages = [(n, what) for n, what in PIPELINE_STAGES if (n != "plots" or plots)]
     stages = [(n, what) for n, what in stages if (n != "video" or video)]
@@ -160,13 +163,12 @@ def run_pipeline(
     t0, cpu0 = time.perf_counter(), _cpu_seconds()
     with threadpool_limits(limits=1, user_api="blas"):
         with stage("record", f" ({n_demos}, seeds {seed}..{seed + n_demos - 1})"):
-            env = gym.make(env_id, **(env_kwargs or {}))
             try:
                 demos = gym_coffee.collect_demonstrations(
-                    env, n=n_demos, seed=seed, progress=progress
+                    record_env, n=n_demos, seed=seed, progress=progress
                 )
             finally:
-                env.close()
+                record_env.close()
             demos.save(out / "demonstrations.npz", overwrite=True)
             results["demonstrations"] = {"n": len(demos), "seeds": demos.seeds}
             results["files"]["demonstrations"] = str(out / "demonstrations.npz")
