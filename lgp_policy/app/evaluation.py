@@ -46,7 +46,13 @@ in real time."""
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion (``scipy.stats.binomtest``).
+    """Wilson score interval for a binomial proportion (Wilson 1927; Newcombe 1998, method 3).
+
+    With ``p = k / n`` and ``z`` the normal quantile of ``(1 + confidence) / 2``: centre
+    ``(2 n p + z^2) / (2 (n + z^2))``, half-width ``z / (2 (n + z^2)) sqrt(4 n p (1 - p) + z^2)``;
+    the low end is 0 for ``k = 0``, the high end 1 for ``k = n``. The same numbers as
+    ``scipy.stats.binomtest(k, n).proportion_ci(confidence, method="wilson")`` (tested), without
+    importing ``scipy.stats`` (~0.75 CPU s).
 
     Args:
         successes: number of successes ``k``.
@@ -60,10 +66,19 @@ def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[f
         return 0.0, 1.0
     if not 0 <= successes <= n:
         raise ValueError(f"successes must be in [0, {n}], got {successes}")
-    from scipy.stats import binomtest
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence!r}")
+    from scipy.special import ndtri
 
-    ci = binomtest(int(successes), int(n)).proportion_ci(confidence, method="wilson")
-    return float(ci.low), float(ci.high)
+    k, n = int(successes), int(n)
+    p = k / n
+    z = ndtri(0.5 + 0.5 * confidence)
+    denom = 2 * (n + z**2)
+    center = (2 * n * p + z**2) / denom
+    delta = z / denom * np.sqrt(4 * n * p * (1 - p) + z**2)
+    low = 0.0 if k == 0 else float(center - delta)
+    high = 1.0 if k == n else float(center + delta)
+    return low, high
 
 
 def write_episode_video(

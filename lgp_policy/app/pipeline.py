@@ -69,6 +69,7 @@ def run_pipeline(
     progress: bool = True,
     force: bool = False,
     env_id: str | None = None,
+    env_kwargs: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Record, fit, evaluate, plot; write everything into ``out``; return ``results.json``.
 
@@ -86,10 +87,13 @@ def run_pipeline(
         env_id: the task: a registered id or a level name of ``gym_coffee.LEVELS`` (default
             ``gym_coffee.ENV_ID``, the easy level); demonstrations and evaluation use it, and
             ``results.json`` records it.
+        env_kwargs: constructor keywords of the env (e.g. ``{"physics": "fast"}``), for the
+            demonstrations and the evaluation alike; ``results.json`` records them.
 
     Raises:
         FileExistsError: ``out`` holds a file of :data:`RUN_FILES` and ``force`` is false.
-        ValueError: ``env_id`` is neither a level name nor a registered id.
+        ValueError: ``env_id`` is neither a level name nor a registered id, or the env refuses
+            ``env_kwargs`` (its error, naming the argument).
     """
     import gymnasium as gym
     from threadpoolctl import threadpool_limits
@@ -118,12 +122,15 @@ def run_pipeline(
             f"{out} holds files of an earlier run ({', '.join(present)}); pass force=True "
             "(--force) to replace them, or choose a new folder"
         )
+    # The env of the demonstrations, made before any work: it checks env_kwargs.
+    record_env = gym.make(env_id, **(env_kwargs or {}))
     out.mkdir(parents=True, exist_ok=True)
     stages = [(n, what) for n, what in PIPELINE_STAGES if (n != "plots" or plots)]
     stages = [(n, what) for n, what in stages if (n != "video" or video)]
     results: dict[str, Any] = {
         "status": "running",
         "env_id": env_id,
+        "env_kwargs": dict(env_kwargs or {}),
         "stages": [n for n, _ in stages],
         "done": [],
         "timings": {},
@@ -156,13 +163,12 @@ def run_pipeline(
     t0, cpu0 = time.perf_counter(), _cpu_seconds()
     with threadpool_limits(limits=1, user_api="blas"):
         with stage("record", f" ({n_demos}, seeds {seed}..{seed + n_demos - 1})"):
-            env = gym.make(env_id)
             try:
                 demos = gym_coffee.collect_demonstrations(
-                    env, n=n_demos, seed=seed, progress=progress
+                    record_env, n=n_demos, seed=seed, progress=progress
                 )
             finally:
-                env.close()
+                record_env.close()
             demos.save(out / "demonstrations.npz", overwrite=True)
             results["demonstrations"] = {"n": len(demos), "seeds": demos.seeds}
             results["files"]["demonstrations"] = str(out / "demonstrations.npz")
@@ -193,6 +199,7 @@ def run_pipeline(
                 workers=workers,
                 progress=progress,
                 env_id=env_id,
+                env_kwargs=env_kwargs,
                 keep_first=True,
                 render_first=video,
             )

@@ -1,7 +1,8 @@
 """Figures in the style of the paper: Fig. 1 (heteroscedastic fit), Fig. 2 (input-space clustering),
 Fig. 4 (constraint profile per frame), Fig. 5 (a reproduction on a new layout).
 
-matplotlib is imported lazily with the ``Agg`` backend unless one is already chosen.
+matplotlib is imported lazily; the figures are made without pyplot (nothing global changes) and
+drawn by Agg.
 """
 
 from __future__ import annotations
@@ -35,24 +36,24 @@ MODEL_LABELS = {
 STAGE_LABELS = {"cup_grasped": "grasp", "cup_placed": "place", "button_pressed": "press"}
 
 
-def _plt() -> Any:
+def _figure(**kwargs: Any) -> Any:
+    """A matplotlib ``Figure`` made without pyplot: nothing global changes (no backend switch,
+    no figure kept by pyplot), and pyplot is not imported (~0.2 CPU s); PNGs are drawn by Agg."""
+    from matplotlib.figure import Figure
+
+    return Figure(**kwargs)
+
+
+def _cmap(name: str) -> Any:
     import matplotlib
 
-    if matplotlib.get_backend().lower() not in ("agg", "pdf", "svg", "cairo"):
-        try:
-            matplotlib.use("Agg")
-        except Exception:  # pragma: no cover - a GUI session
-            pass
-    import matplotlib.pyplot as plt
-
-    return plt
+    return matplotlib.colormaps[name]
 
 
 def _save(fig: Any, path: str | Path) -> Path:
-    """Save a figure (PNG, 110 dpi) and close it."""
+    """Save a figure (PNG, 110 dpi)."""
     path = Path(path)
     fig.savefig(path, dpi=110)
-    _plt().close(fig)
     return path
 
 
@@ -77,15 +78,13 @@ def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0
     """Fig. 4: per object frame and axis, the demonstrations, the GP mean and a +-2 std band over
     normalised time; tight intervals (the constraint report) are shaded and labelled, demonstrated
     stage times are dotted lines."""
-    plt = _plt()
     frames = [n for n in policy.frame_names_ if n != JOINT_FRAME]
     if not frames:
         frames = [JOINT_FRAME]
     s = policy.phase_grid_
     data = getattr(getattr(policy, "encoder_", None), "data_", None)
-    fig, axes = plt.subplots(
-        3, len(frames), figsize=(4.2 * len(frames), 7.0), sharex=True, squeeze=False
-    )
+    fig = _figure(figsize=(4.2 * len(frames), 7.0))
+    axes = fig.subplots(3, len(frames), sharex=True, squeeze=False)
     intervals = policy.constraints_.get("intervals", [])
     for c, name in enumerate(frames):
         color = FRAME_COLORS.get(name, "tab:red")
@@ -219,8 +218,7 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     """Fig. 5: (a) task space, the targets of each object frame (dotted/dashed) and the resulting
     end-effector path (solid red); (b) joint space, the reproduced joints with the remaining
     +-2 std of the fused estimate and the joint-space GP mean."""
-    plt = _plt()
-    fig = plt.figure(figsize=(12, 6.5))
+    fig = _figure(figsize=(12, 6.5))
     grid = fig.add_gridspec(3, 2, width_ratios=(1.0, 1.1))
     task_axes = [fig.add_subplot(grid[r, 0]) for r in range(3)]
     s = trace["phase"]
@@ -248,7 +246,7 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     task_axes[-1].set_xlabel("normalised time")
     ax = fig.add_subplot(grid[:, 1])
     q, qs = trace["joint_pos"], trace["joint_std"]
-    colors = plt.get_cmap("tab10")
+    colors = _cmap("tab10")
     for j in range(q.shape[1]):
         ax.fill_between(
             s, q[:, j] - 2 * qs[:, j], q[:, j] + 2 * qs[:, j], color=colors(j), alpha=0.2
@@ -297,7 +295,6 @@ def plot_heteroscedastic(
     from lgp_policy.gp.exact import GaussianProcess
     from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 
-    plt = _plt()
     if frame is None or dim is None:
         frame, dim = _pick_dimension(encoder)
     X, y = _xy(encoder, frame, dim)
@@ -305,7 +302,8 @@ def plot_heteroscedastic(
     gp = GaussianProcess(encoder.make_kernel(), random_state=0).fit(X, y)
     used = encoder.models_[frame][dim]
     hgp = HeteroscedasticGP(encoder.make_kernel(), random_state=0).fit(X, y)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig = _figure(figsize=(13, 3.8))
+    axes = fig.subplots(1, 3)
     label = f"{frame} {AXES[dim] if frame != JOINT_FRAME else f'dim {dim}'}"
     demos = encoder.data_[frame][:, :, dim]
     for ax, model, title in (
@@ -374,7 +372,6 @@ def plot_clustering(
     model, the centres (squares) and the weighting functions ``k(x, c_l)``."""
     from lgp_policy.gp.local import LocalGP
 
-    plt = _plt()
     if frame is None or dim is None:
         frame, dim = _pick_dimension(encoder)
     model = encoder.models_[frame][dim]
@@ -388,8 +385,9 @@ def plot_clustering(
     assign = np.asarray(model.assignments_)
     centers = np.asarray(model.centers_).reshape(-1)
     ls = getattr(encoder, "length_scale", 0.1)
-    fig, ax = plt.subplots(figsize=(8, 4))
-    cmap = plt.get_cmap("tab10")
+    fig = _figure(figsize=(8, 4))
+    ax = fig.subplots()
+    cmap = _cmap("tab10")
     markers = "os^Dv<>ph*"
     lo, hi = float(y.min()), float(y.max())
     base = lo - 0.35 * (hi - lo + 1e-9)

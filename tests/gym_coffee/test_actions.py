@@ -142,6 +142,7 @@ def test_finite_actions_out_of_range_are_clipped():
         ({"exact_reset": 1}, "exact_reset"),
         ({"action_type": "cartesian"}, "action_type"),
         ({"action_type": None}, "action_type"),
+        ({"physics": "slow"}, "physics"),
     ],
 )
 @pytest.mark.filterwarnings("ignore:.*render_mode:UserWarning")
@@ -150,6 +151,26 @@ def test_bad_constructor_arguments_raise_before_any_work(kwargs, name):
         CoffeeEnv(**kwargs)
     with pytest.raises(ValueError, match=rf"^{name} must"):
         gym.make(gym_coffee.ENV_ID, **kwargs)
+
+
+def test_fast_physics_preset_keeps_the_control_period():
+    """``physics="fast"``: 5 physics steps of 8 ms with 20 solver iterations (the same 40 ms per
+    step); the default env is unchanged."""
+    from gym_coffee.env import CONTROL_DT
+
+    fast, default = CoffeeEnv(physics="fast"), CoffeeEnv()
+    try:
+        assert (fast.sim.n_substeps, fast.sim.solver_iterations) == (5, 20)
+        assert (default.sim.n_substeps, default.sim.solver_iterations) == (10, 50)
+        assert fast.sim.dt == pytest.approx(CONTROL_DT) and default.sim.dt == CONTROL_DT
+        obs = []
+        for env in (fast, default):
+            env.reset(seed=0)
+            obs.append(env.step(np.zeros(8, dtype=np.float32))[0])
+        assert not np.array_equal(obs[0], obs[1])  # other physics, other trajectories
+    finally:
+        fast.close()
+        default.close()
 
 
 def test_small_and_odd_render_sizes_work():

@@ -434,19 +434,25 @@ def test_usable_after_close(env_id):
 
 
 def test_no_visual_meshes_unless_rendering_and_the_same_episodes():
-    """Without a render mode the world is built without visual meshes (the fast reset; PyBullet
-    then shows the collision meshes); the
-    physics is the same bit for bit as in a rendering env, for a contact-rich teacher episode
-    in a reused env."""
+    """Without a render mode the world is built without visual shapes (the fast reset); headless
+    frames draw the scene's visual shapes and the Panda's collision meshes in
+    ``HEADLESS_COLORS`` (its visual meshes only in the GUI); the physics is the same bit for
+    bit as in a rendering env, for a contact-rich teacher episode in a reused env."""
+    from gym_coffee.robot import HEADLESS_COLORS
+
     plain = make(gym_coffee.ENV_ID)
     rendering = make(gym_coffee.ENV_ID, render_mode="rgb_array")
     try:
         for env, expected in [(plain, False), (rendering, True)]:
             sim = env.unwrapped.sim
             env.reset(seed=0)
-            files = [shape[4] for shape in sim.p.getVisualShapeData(sim.bodies["panda"])]
-            has_visual_meshes = any(b"/visual/" in name for name in files)
-            assert sim.visual_shapes is expected and has_visual_meshes is expected
+            shapes = sim.p.getVisualShapeData(sim.bodies["panda"])
+            assert not any(b"/visual/" in shape[4] for shape in shapes)
+            colors = {shape[1]: shape[7] for shape in shapes}
+            assert (colors[9] == pytest.approx(HEADLESS_COLORS[9])) is expected
+            # The table: one collision box, five visual boxes (top and legs).
+            assert len(sim.p.getVisualShapeData(sim.bodies["table"])) == (5 if expected else 1)
+            assert sim.visual_shapes is expected
         _teacher_episode(plain, seed=3)
         got, info = _teacher_episode(plain, seed=8)
         assert info["is_success"]
@@ -454,3 +460,28 @@ def test_no_visual_meshes_unless_rendering_and_the_same_episodes():
     finally:
         plain.close()
         rendering.close()
+
+
+def test_composited_frames_equal_frames_drawn_at_once():
+    """Headless frames composite the floor, the table and the machine's housing from a backdrop
+    (drawn once per layout); the pixels are those of drawing the whole scene every frame, over
+    two layouts (the machine moves between them) and a moving arm and button."""
+    composited = make(gym_coffee.ENV_ID, render_mode="rgb_array", width=96, height=72)
+    direct = make(gym_coffee.ENV_ID, render_mode="rgb_array", width=96, height=72)
+    direct.unwrapped.sim.static_bodies = ()  # draw everything every frame
+    rng = np.random.default_rng(0)
+    try:
+        assert composited.unwrapped.sim.static_bodies == ("plane", "table", "machine")
+        for seed in (0, 1):
+            for env in (composited, direct):
+                env.reset(seed=seed)
+            for _ in range(4):
+                action = rng.uniform(-1, 1, 8).astype(np.float32)
+                frames = [env.render() for env in (composited, direct)]
+                np.testing.assert_array_equal(frames[0], frames[1])
+                assert (frames[0] != frames[0][0, 0]).any()  # a picture, not a blank
+                for env in (composited, direct):
+                    env.step(action)
+    finally:
+        composited.close()
+        direct.close()

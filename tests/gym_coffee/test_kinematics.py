@@ -124,3 +124,51 @@ def test_pose_and_jacobian_is_one_pass_of_the_same_chain():
     np.testing.assert_array_equal(kin.jacobian(q0), cached)
     with pytest.raises(ValueError, match="shape"):
         kin.pose_and_jacobian(np.zeros(6))
+
+
+def test_forward_kinematics_alone_gives_the_bits_of_the_full_chain():
+    """The position-only pass (what the env computes every step) equals the position of the full
+    chain bit for bit, with and without a cached pose of the same joints."""
+    rng = np.random.default_rng(5)
+    kin = PandaKinematics(base_position=(0.1, -0.2, 0.3))
+    for _ in range(50):
+        q = rng.uniform(kin.joint_lower, kin.joint_upper)
+        pos, _, _ = kin.pose_and_jacobian(q)
+        np.testing.assert_array_equal(PandaKinematics((0.1, -0.2, 0.3)).forward_kinematics(q), pos)
+        kin.jacobian(q)  # fills the cache for q
+        np.testing.assert_array_equal(kin.forward_kinematics(q), pos)
+
+
+def test_ik_step_orientation_error_has_the_bits_of_three_cross_products():
+    """ik_step writes the orientation error out (for speed); its targets equal, bit for bit,
+    those of the textbook form 1/2 sum_i r_i x d_i with np.cross (demonstrations stay the same)."""
+    rng = np.random.default_rng(6)
+    kin = PandaKinematics()
+
+    def reference(q, position, rotation, rest, max_step):
+        q_target = q.copy()
+        for _ in range(2):
+            pos, rot = kin.forward_pose(q_target)
+            err_o = 0.5 * (
+                np.cross(rot[:, 0], rotation[:, 0])
+                + np.cross(rot[:, 1], rotation[:, 1])
+                + np.cross(rot[:, 2], rotation[:, 2])
+            )
+            jac = kin.jacobian(q_target)
+            jac[3:] *= 0.3
+            err = np.concatenate([position - pos, 0.3 * err_o])
+            jjt = jac @ jac.T + 0.03**2 * np.eye(6)
+            dq = jac.T @ np.linalg.solve(jjt, err)
+            pinv = jac.T @ np.linalg.solve(jjt, jac)
+            dq += (np.eye(7) - pinv) @ (0.05 * (rest - q_target))
+            q_target = q_target + dq
+        step = np.clip(q_target - q, -max_step, max_step)
+        return np.clip(q + step, kin.joint_lower, kin.joint_upper)
+
+    for _ in range(20):
+        q = rng.uniform(kin.joint_lower, kin.joint_upper)
+        rest = rng.uniform(kin.joint_lower, kin.joint_upper)
+        position = kin.forward_kinematics(q) + rng.normal(0.0, 0.05, 3)
+        rotation = Rotation.random(random_state=rng).as_matrix()
+        got = kin.ik_step(q, position, rotation, rest, max_step=0.05)
+        np.testing.assert_array_equal(got, reference(q, position, rotation, rest, 0.05))

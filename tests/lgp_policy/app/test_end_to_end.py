@@ -86,15 +86,27 @@ def test_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
             policy_kwargs={"model": "empirical"},
             progress=False,
             env_id="hard",
+            env_kwargs={"physics": "fast"},
         )
     results = json.loads((out / "results.json").read_text())
     assert results["env_id"] == gym_coffee.LEVELS["hard"]  # the level, recorded and evaluated
+    assert results["env_kwargs"] == {"physics": "fast"}
+    demos = gym_coffee.DemonstrationSet.load(out / "demonstrations.npz")
+    assert demos.metadata["env_kwargs"]["physics"] == "fast"
     assert results["status"] == "interrupted" and results["interrupted_in"] == "plots"
     assert results["done"] == ["record", "fit", "evaluate"]
     assert results["evaluation"]["n_episodes"] == 1
     assert (out / "policy.npz").exists() and not (out / "rollout.gif").exists()
     with pytest.raises(FileExistsError, match="force"):  # a second run never mixes into it
         pipeline.run_pipeline(out, n_demos=1, n_episodes=1, progress=False)
+
+
+def test_run_refuses_bad_env_kwargs_before_any_work(tmp_path):
+    with pytest.raises(ValueError, match=r"^physics must"):
+        pipeline.run_pipeline(
+            tmp_path / "run", n_demos=1, n_episodes=1, env_kwargs={"physics": "slow"}
+        )
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("env_id", ["medium", "CartPole-v9", 3])

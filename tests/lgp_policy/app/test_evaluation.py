@@ -24,6 +24,19 @@ from lgp_policy.rollout import run_episode
 SHORT = {"max_episode_steps": 20, "width": 64, "height": 48}
 
 
+def test_wilson_interval_equals_scipy_binomtest():
+    """The closed form gives scipy.stats.binomtest's Wilson interval to the last bit."""
+    from scipy.stats import binomtest
+
+    for confidence in (0.95, 0.9, 0.99):
+        for n in (1, 2, 7, 50, 173):
+            for k in range(n + 1):
+                ci = binomtest(k, n).proportion_ci(confidence, method="wilson")
+                assert wilson_interval(k, n, confidence) == (float(ci.low), float(ci.high))
+    with pytest.raises(ValueError, match="confidence"):
+        wilson_interval(3, 10, 1.0)
+
+
 def test_wilson_interval_known_values():
     lo, hi = wilson_interval(5, 10)
     assert lo == pytest.approx(0.2366, abs=1e-4) and hi == pytest.approx(0.7634, abs=1e-4)
