@@ -620,14 +620,15 @@ def test_video_is_never_overwritten_by_default(tmp_path):
 
 
 def test_failed_video_write_leaves_no_file(tmp_path, monkeypatch):
-    import imageio.v3 as iio3
+    import PIL.Image
 
     from gym_coffee.video import write_video
 
     def disk_full(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(iio3, "imwrite", disk_full)
+    # GIFs are written by Pillow (a failure mid-write, after the temporary file exists).
+    monkeypatch.setattr(PIL.Image.Image, "save", disk_full)
     with pytest.raises(OSError, match="No space"):
         write_video(tmp_path / "v.gif", [np.zeros((4, 4, 3), np.uint8)])
     assert os.listdir(tmp_path) == []
