@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -24,6 +25,7 @@ import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from lgp_policy.gp._base import ParamsMixin
+from lgp_policy.gp._lbfgsb import minimize_many
 from lgp_policy.gp._threads import with_single_blas_thread
 from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
 from lgp_policy.gp.kernels import Exponential, Kernel, SquaredExponential, WhiteNoise
@@ -103,11 +105,11 @@ def _minimize(obj, theta0, bounds, optimizer: Optimizer, max_iter: int):
     if callable(optimizer):
         theta, val = optimizer(obj, theta0, bounds)
         return np.asarray(theta, dtype=np.float64), float(val)
-    if optimizer == "L-BFGS-B":
-        res = scipy.optimize.minimize(
-            obj, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iter}
+    if optimizer == "L-BFGS-B":  # scipy's routine and defaults, without scipy's driver
+        ((theta, value),) = minimize_many(
+            lambda _, thetas: [obj(thetas[0])], [theta0], [bounds], max_iter
         )
-        return res.x, float(res.fun)
+        return theta, value
     if optimizer != "CG":
         raise ValueError(
             f"optimizer must be 'L-BFGS-B', 'CG', None or a callable, got {optimizer!r}"
@@ -173,6 +175,7 @@ def fit_shared_hyperparameters(
     random_state: int | np.random.Generator | None = None,
     max_iter: int = 200,
     apply_to: list[GaussianProcess] | None = None,
+    cache: dict[Any, Any] | None = None,
 ) -> NDArray[np.float64]:
     """Learn one ``theta`` for several fitted GPs by maximising the sum of their Eq. (4).
 
@@ -181,13 +184,15 @@ def fit_shared_hyperparameters(
     structure. The sum of
     independent data sets' log marginal likelihoods is the likelihood of the product-of-experts
     model of local GPs (Deisenroth & Ng 2015). The result is applied to ``gps`` and to
-    ``apply_to`` (default: none besides ``gps``) without further optimisation.
+    ``apply_to`` (default: none besides ``gps``) without further optimisation. ``cache``: a
+    dict owned by a caller that learns repeatedly on the same inputs (the EM), in which the
+    stacked distances are kept between calls (see :meth:`_StackedLML.build`).
 
     Returns:
         the shared ``theta`` (log space).
     """
     kernel = gps[0].kernel_
-    stacked = _StackedLML.build(gps)
+    stacked = _StackedLML.build(gps, cache)
 
     def total(theta):
         if stacked is not None:
@@ -214,75 +219,135 @@ def fit_shared_hyperparameters(
 class _StackedLML:
     """The sum over several fitted GPs of Eq. (4) and its gradient, in one batched pass.
 
-    The GPs' (unique-input) problems are stacked into ``(B, m, m)`` arrays, ``m`` the largest;
+    The GPs' (unique-input) problems are stacked into ``(P, m, m)`` arrays, ``m`` the largest;
     a smaller problem is padded with independent unit-variance dummy inputs with target 0
     (identity rows and columns of ``K_y``: their distances to everything are ``PAD_DISTANCE``,
     so every kernel term and its gradient is exactly 0 there), which add exactly 0 to the value
     and the gradient. The kernel matrices, their gradients and the contractions are then one
-    numpy operation each for all ``B`` problems, and only the factorisation and inversion run
+    numpy operation each for all ``P`` problems, and only the factorisation and inversion run
     per problem (LAPACK, measured faster than numpy's stacked routines at these sizes): for the
     small local models of :class:`~lgp_policy.gp.local.LocalGP` the per-GP Python work of
     :meth:`GaussianProcess._lml` cost several times the algebra. Same value and gradient as the
     sum of the GPs' ``_lml`` to rounding (tested); where any ``K_y`` needs jitter ``__call__``
     returns ``None`` and the caller falls back to that sum.
 
+    Repeated work is done once:
+
+    * GPs whose ``K_y`` is the same matrix for every ``theta`` (equal training distances,
+      replicate counts and ``alpha``: the local models of one time grid in the homoscedastic
+      step and in the z-process of the EM) are one problem whose targets are the members'
+      targets side by side (a multi-output GP): one factorisation instead of one per model;
+    * where the stacked distances take few distinct values (a regular grid), the kernel is
+      evaluated on those values and gathered.
+
+    Both compare distances to ``2^-40`` relative (those of two equally spaced windows differ in
+    their last bits), so the result equals the separate sum to rounding, not bit for bit.
+
     Gradient: with ``W`` the lower triangle of ``K_y^-1`` and ``a = K_y^-1 y``,
     ``dLML/dtheta_j = (a^T G_j a - n_t tr(K_y^-1 G_j)) / 2`` and, ``G_j`` symmetric,
-    ``tr(K_y^-1 G_j) = 2 sum(W * G_j) - sum(diag(W) * diag(G_j))``.
+    ``tr(K_y^-1 G_j) = 2 sum(W * G_j) - sum(diag(W) * diag(G_j))``; ``n_t`` is the number of
+    target columns a problem's ``K_y`` serves (members times targets).
     """
 
     #: Distance of a padding input to every input (finite: its products with 0 stay 0).
     PAD_DISTANCE = 1e120
 
-    def __init__(self, gps: list[GaussianProcess]) -> None:
+    #: Evaluate the kernel on the distinct distances when there are at most this fraction of
+    #: the stacked entries.
+    DISTINCT_FRACTION = 0.125
+
+    def __init__(self, gps: list[GaussianProcess], cache: dict[Any, Any] | None = None) -> None:
         self.gps = gps
         self.parts: list[tuple[str, int]] = []
         start = 0
         for leaf in gps[0].kernel_.leaves():
             self.parts.append(("noise" if leaf.is_noise else type(leaf).__name__, start))
             start += leaf.n_dims
-        sizes = [gp._data.X.shape[0] for gp in gps]
-        B, m = len(gps), max(sizes)
+        kinds = sorted({kind for kind, _ in self.parts if kind != "noise"})
         n_t = gps[0]._data.ybar.shape[1]
-        valid = np.zeros((B, m), dtype=bool)
-        for b, n in enumerate(sizes):
-            valid[b, :n] = True
+        # Problems: GPs whose K_y coincides for every theta share one (first member's) matrix.
+        cache = {} if cache is None else cache
+        problems: list[list[int]] = []
+        for b, gp in enumerate(gps):
+            for members in problems:
+                if _same_covariance(gps[members[0]], gp, kinds, cache):
+                    members.append(b)
+                    break
+            else:
+                problems.append([b])
+        sizes = [gps[members[0]]._data.X.shape[0] for members in problems]
+        P, m = len(problems), max(sizes)
+        R = n_t * max(len(members) for members in problems)
+        valid = np.zeros((P, m), dtype=bool)
+        for p, n in enumerate(sizes):
+            valid[p, :n] = True
         self.dist: dict[str, NDArray[np.float64]] = {}
-        for kind, _ in self.parts:
-            if kind == "noise" or kind in self.dist:
-                continue
+        self.distinct: dict[str, tuple[NDArray[np.float64], NDArray[np.intp]] | None] = {}
+        firsts = tuple(gps[members[0]]._data.X for members in problems)
+        key = ("stack", tuple(kinds), tuple(id(X) for X in firsts))
+        if key in cache:  # the same inputs stacked the same way: reuse the distances
+            self.dist, self.distinct = cache[key][1:]
+        for kind in [k for k in kinds if k not in self.dist]:
             D = np.full(
-                (B, m, m),
+                (P, m, m),
                 self.PAD_DISTANCE**2 if kind == "SquaredExponential" else self.PAD_DISTANCE,
             )
-            for b, (gp, n) in enumerate(zip(gps, sizes, strict=True)):
+            for p, (members, n) in enumerate(zip(problems, sizes, strict=True)):
+                gp = gps[members[0]]
                 if kind == "SquaredExponential":
-                    D[b, :n, :n] = gp._training_sqdist()
+                    D[p, :n, :n] = gp._training_sqdist()
                 else:
-                    D[b, :n, :n] = gp._training_dist()
+                    D[p, :n, :n] = gp._training_dist()
             self.dist[kind] = D
-        self.Y = np.zeros((B, m, n_t))
-        self.counts = np.ones((B, m))
-        self.alpha = np.zeros((B, m))
-        self.scatter = np.zeros((B, m))
-        for b, (gp, n) in enumerate(zip(gps, sizes, strict=True)):
-            d = gp._data
-            self.Y[b, :n] = d.ybar
-            self.counts[b, :n] = d.counts
-            self.alpha[b, :n] = gp._alpha_u
-            self.scatter[b, :n] = np.sum(d.scatter, axis=1)
+            values, inverse = np.unique(_round_mantissa(D), return_inverse=True)
+            if values.size <= self.DISTINCT_FRACTION * D.size:
+                self.distinct[kind] = (values, inverse.reshape(D.shape))
+            else:
+                self.distinct[kind] = None
+        cache[key] = (firsts, self.dist, self.distinct)  # (firsts: keeps the ids valid)
+        self.Y = np.zeros((P, m, R))
+        self.counts = np.ones((P, m))
+        self.alpha = np.zeros((P, m))
+        self.scatter = np.zeros((P, m))  # summed over members and targets
+        self.n_cols = np.zeros(P)  # target columns per problem
+        for p, (members, n) in enumerate(zip(problems, sizes, strict=True)):
+            first = gps[members[0]]
+            self.counts[p, :n] = first._data.counts
+            self.alpha[p, :n] = first._alpha_u
+            for k, b in enumerate(members):
+                d = gps[b]._data
+                self.Y[p, :n, k * n_t : (k + 1) * n_t] = d.ybar
+                self.scatter[p, :n] += np.sum(d.scatter, axis=1)
+            self.n_cols[p] = len(members) * n_t
         self.is_valid = valid
         self.valid = valid.astype(np.float64)
+        self.weight = self.valid * self.n_cols[:, None]  # target columns at each input
         self.pad = 1.0 - self.valid  # unit diagonal of the padding
         self.n_t = n_t
-        self.n_total = int(sum(sizes))
-        self.diag = (slice(None), np.arange(m), np.arange(m))
+        self.n_total = int(sum(gp._data.X.shape[0] for gp in gps))
         self.replicated = bool(np.any(self.counts > 1.0))
+        # Constant parts of Eq. (4) and of the replicate correction (``_replicate_correction``):
+        # per group of c replicates, -(c-1)/2 log(2 pi s) - 1/2 log c - scatter / (2 s) per
+        # target column.
+        c = self.counts
+        self.inv_counts = self.valid / c
+        self.rep_mask = valid & (c > 1.0)
+        self.weight_c1 = self.weight * (c - 1.0)
+        self.lml_const = -0.5 * n_t * self.n_total * _LOG_2PI - 0.5 * float(
+            np.vdot(self.weight, (c - 1.0) * _LOG_2PI + np.log(c))
+        )
+        self.twice_off_diagonal = 2.0 - np.eye(m)
 
     @classmethod
-    def build(cls, gps: list[GaussianProcess]) -> _StackedLML | None:
+    def build(
+        cls, gps: list[GaussianProcess], cache: dict[Any, Any] | None = None
+    ) -> _StackedLML | None:
         """A stacked evaluator, or ``None`` where the kernels are not all of the supported
-        form (isotropic squared-exponential / exponential terms plus white noise)."""
+        form (isotropic squared-exponential / exponential terms plus white noise).
+
+        ``cache``: a dict kept by the caller between builds on the same input arrays (the
+        iterations of the EM): the stacked distances and which inputs have equal distances are
+        stored in it, keyed by the identity of the GPs' input arrays (which it keeps alive)."""
         if len(gps) < 2:
             return None
         kinds = [type(leaf) for leaf in gps[0].kernel_.leaves()]
@@ -300,7 +365,24 @@ class _StackedLML:
                 return None
         if np.any(np.abs(gps[0].kernel_.bounds) > 50.0):  # keep PAD_DISTANCE products finite
             return None
-        return cls(gps)
+        return cls(gps, cache)
+
+    def _kernel(self, kind: str, theta: NDArray[np.float64]):
+        """``(K, dK/dlog l)`` of one stacked isotropic term (``dK/dlog variance`` is ``K``)."""
+        distinct = self.distinct[kind]
+        if kind == "SquaredExponential":
+            if distinct is None:
+                K, G = SquaredExponential.from_sqdist(theta, self.dist[kind], True)
+                return K, G[1]
+            values, inverse = distinct
+            Kv, Gv = SquaredExponential.from_sqdist(theta, values, True)
+        else:
+            if distinct is None:
+                K, G = Exponential.from_dist(theta, self.dist[kind], True)
+                return K, G[1]
+            values, inverse = distinct
+            Kv, Gv = Exponential.from_dist(theta, values, True)
+        return Kv[inverse], Gv[1][inverse]
 
     def __call__(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]] | None:
         theta = np.asarray(theta, dtype=np.float64)
@@ -311,63 +393,98 @@ class _StackedLML:
         noise, noise_idx = 0.0, []
         for kind, j in self.parts:
             if kind == "noise":
-                noise += float(np.exp(theta[j]))
+                noise += math.exp(theta[j])
                 noise_idx.append(j)
                 continue
-            if kind == "SquaredExponential":
-                Kl, G = SquaredExponential.from_sqdist(theta[j : j + 2], self.dist[kind], True)
-            else:
-                Kl, G = Exponential.from_dist(theta[j : j + 2], self.dist[kind], True)
-            K = Kl.copy() if K is None else K + Kl  # (G[0] is Kl itself)
-            grads += [(j, G[0]), (j + 1, G[1])]
+            Kl, G1 = self._kernel(kind, theta[j : j + 2])
+            K = Kl.copy() if K is None else K + Kl
+            grads += [(j, Kl), (j + 1, G1)]
         if K is None:  # pragma: no cover - build() requires a signal term
             return None
         s = noise + self.alpha  # one observation's noise variance at each unique input
-        c = self.counts
-        K[self.diag] += self.valid * s / c + self.pad
-        # In place, no copies: K[b].T is K[b] (symmetric) in Fortran order; its factor and then
+        P = K.shape[0]
+        diag = K.reshape(P, -1)[:, :: K.shape[1] + 1]  # a view of the diagonals
+        diag += s * self.inv_counts + self.pad
+        # In place, no copies: K[p].T is K[p] (symmetric) in Fortran order; its factor and then
         # the inverse's triangle overwrite it, so W (= K, read in C order) holds one triangle
         # of K_y^-1 and zeros in the other (``clean``).
-        a = np.empty_like(self.Y)
-        logdet = 0.0
-        for b in range(K.shape[0]):
-            L, info = _potrf(K[b].T, lower=1, overwrite_a=1, clean=1)
+        factors = []
+        for p in range(P):
+            L, info = _potrf(K[p].T, lower=1, overwrite_a=1, clean=1)
             if info != 0:
                 return None
-            logdet += float(np.sum(np.log(L.diagonal())))
-            a[b] = _potrs(L, self.Y[b], lower=1)[0]
+            factors.append(L)
+        logdet = np.sum(np.log(diag), axis=1)  # the factors' diagonals
+        a = np.empty_like(self.Y)
+        for p, L in enumerate(factors):
+            a[p] = _potrs(L, self.Y[p], lower=1)[0]
             _, info = _potri(L, lower=1, overwrite_c=1)
             if info != 0:  # pragma: no cover - L comes from a successful factorisation
                 return None
         W = K
-        n_t = self.n_t
-        lml = -0.5 * float(np.vdot(self.Y, a)) - n_t * logdet - 0.5 * n_t * self.n_total * _LOG_2PI
-        s = np.where(self.is_valid & (s > 0), s, 1.0)  # in the replicate terms (0 where c = 1)
+        cols = self.n_cols
+        lml = -0.5 * float(np.vdot(self.Y, a)) - float(np.dot(cols, logdet)) + self.lml_const
         if self.replicated:
-            per_group = (
-                -0.5 * n_t * (c - 1.0) * (_LOG_2PI + np.log(s))
-                - 0.5 * n_t * np.log(c)
-                - 0.5 * self.scatter / s
+            s_rep = np.where(self.rep_mask & (s > 0), s, 1.0)  # (c - 1 = 0 where s = 0)
+            inv_s = 1.0 / s_rep
+            lml -= 0.5 * (
+                float(np.vdot(self.weight_c1, np.log(s_rep))) + float(np.vdot(self.scatter, inv_s))
             )
-            lml += float(np.vdot(self.valid, per_group))
-        W_diag = W[self.diag]
+        W2 = W * self.twice_off_diagonal  # tr(K_y^-1 G) = sum(W2 * G) for symmetric G
+        W2 = W2.reshape(P, 1, -1)
         grad = np.zeros_like(theta)
         for j, G in grads:
             quad = float(np.vdot(a, G @ a))
-            trace = 2.0 * float(np.vdot(W, G)) - float(np.vdot(W_diag, G[self.diag]))
-            grad[j] = 0.5 * (quad - n_t * trace)
+            trace = np.matmul(W2, G.reshape(P, -1, 1)).reshape(P)
+            grad[j] = 0.5 * (quad - float(np.dot(cols, trace)))
         if noise_idx:
-            A_diag = np.sum(a**2, axis=2) - n_t * W_diag  # diag(dLML/dK_y) * 2
-            dnoise = 0.5 * float(np.vdot(self.valid, A_diag / c))
+            A_diag = np.sum(a * a, axis=2) - cols[:, None] * diag  # 2 diag(dLML/dK_y)
+            dnoise = 0.5 * float(np.vdot(self.inv_counts, A_diag))
             if self.replicated:
-                dnoise += float(
-                    np.vdot(self.valid, -0.5 * n_t * (c - 1.0) / s + 0.5 * self.scatter / s**2)
+                dnoise += 0.5 * float(
+                    np.vdot(self.scatter, inv_s * inv_s) - np.vdot(self.weight_c1, inv_s)
                 )
             for j in noise_idx:
-                grad[j] = dnoise * float(np.exp(theta[j]))
-        if not (np.isfinite(lml) and np.all(np.isfinite(grad))):  # e.g. theta beyond bounds
+                grad[j] = dnoise * math.exp(theta[j])
+        if not (math.isfinite(lml) and all(map(math.isfinite, grad))):  # theta beyond bounds
             return None
         return lml, grad
+
+
+#: Low mantissa bits ignored when distances are compared (relative 2^-40, about 1e-12).
+_DROPPED_BITS = 12
+
+
+def _round_mantissa(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``x`` (non-negative) with its lowest ``_DROPPED_BITS`` mantissa bits rounded away."""
+    bits = np.ascontiguousarray(x, dtype=np.float64).view(np.int64)
+    half = np.int64(1 << (_DROPPED_BITS - 1))
+    mask = np.int64(~((1 << _DROPPED_BITS) - 1))
+    return ((bits + half) & mask).view(np.float64)
+
+
+def _same_covariance(
+    a: GaussianProcess, b: GaussianProcess, kinds: list[str], cache: dict[Any, Any]
+) -> bool:
+    """Whether two prepared GPs have the same ``K_y`` at every ``theta``: training distances
+    (for the kernel ``kinds``) equal to ``2^-40`` relative, and equal replicate counts and
+    fixed noise ``alpha``."""
+    da, db = a._data, b._data
+    if da.X.shape != db.X.shape:
+        return False
+    if not (np.array_equal(da.counts, db.counts) and np.array_equal(a._alpha_u, b._alpha_u)):
+        return False
+    key = ("same", tuple(kinds), id(da.X), id(db.X))
+    if key not in cache:
+        same = True
+        for kind in kinds:
+            if kind == "SquaredExponential":
+                da_, db_ = a._training_sqdist(), b._training_sqdist()
+            else:
+                da_, db_ = a._training_dist(), b._training_dist()
+            same = same and bool(np.allclose(da_, db_, rtol=2.0**-40, atol=0.0))
+        cache[key] = (same, da.X, db.X)  # (the arrays: keeps the ids valid)
+    return bool(cache[key][0])
 
 
 def unique_rows(
@@ -410,6 +527,18 @@ class _Replicates:
         self.counts = counts.astype(np.float64)
         self.collapsed = U.shape[0] < n
         self.set_y(y)
+
+    def with_y(self, y: NDArray[np.float64]) -> _Replicates:
+        """The same grouping of the same inputs with targets ``y`` ``(n, n_targets)``."""
+        new = object.__new__(_Replicates)
+        new.X, new.inverse, new.counts, new.collapsed = (
+            self.X,
+            self.inverse,
+            self.counts,
+            self.collapsed,
+        )
+        new.set_y(y)
+        return new
 
     def set_y(self, y: NDArray[np.float64]) -> None:
         m = self.X.shape[0]
@@ -497,6 +626,45 @@ class GaussianProcess(ParamsMixin):
             self.kernel_.theta = self._optimize_theta(self.kernel_)
         self._solve()
         return self
+
+    def _derive(
+        self,
+        kernel: Kernel,
+        *,
+        alpha: NDArray[np.float64] | None = None,
+        y: NDArray[np.float64] | None = None,
+    ) -> GaussianProcess:
+        """A GP prepared (as by :meth:`_prepare`) on this prepared GP's training inputs, with
+        ``kernel`` and without the checks and grouping ``_prepare`` would repeat.
+
+        For the steps of an iterative fit on fixed inputs (the heteroscedastic EM): the
+        replicate grouping and the cached distances are shared. ``alpha``: fixed noise per
+        *distinct* input (rows of ``self._data.X``; default this GP's), so it is constant
+        within a replicate group by construction; ``y``: ``(n_samples,)`` targets (default
+        this GP's). Only for GPs with ``normalize_y=False`` (the targets are used as given).
+        """
+        if self.normalize_y:
+            raise ValueError("_derive needs a GP with normalize_y=False")
+        new = object.__new__(type(self))
+        new.__dict__.update(self.get_params(deep=False))
+        d = self._data
+        new.kernel = kernel
+        new._alpha_u = self._alpha_u if alpha is None else np.asarray(alpha, dtype=np.float64)
+        new.alpha = new._alpha_u[d.inverse] if alpha is not None else self.alpha
+        if y is None:
+            new._data, new.y_train_ = d, self.y_train_
+        else:
+            new.y_train_ = y
+            new._data = d.with_y(y.reshape(y.shape[0], -1))
+        new.X_train_ = self.X_train_
+        new.n_features_in_ = self.n_features_in_
+        new._single_target = new.y_train_.ndim == 1
+        new._y_mean, new._y_std = self._y_mean, self._y_std
+        new._sqdist_cache = getattr(self, "_sqdist_cache", None)
+        new._dist_cache = getattr(self, "_dist_cache", None)
+        new.kernel_ = kernel.clone()
+        new.n_lml_evaluations_ = 0
+        return new
 
     def _prepare(self, X: ArrayLike, y: ArrayLike) -> GaussianProcess:
         """``fit`` up to the factorisation: checked data, replicate groups, ``kernel_`` as given.

@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -156,15 +157,24 @@ def fixed_gp(k: Kernel, alpha: Any = 0.0, *, collapse_replicates: bool) -> Gauss
     )
 
 
-def _fit_z(make, zk: Kernel, U, z, var, prepare: bool = False) -> GaussianProcess:
+def _fit_z(make, zk: Kernel, U, z, var, prepare: bool = False, template=None) -> GaussianProcess:
     """The z-process on the distinct inputs ``U`` with known target noise ``var``.
 
     A single distinct input is given as two exact replicates of twice the noise (the same
     information), since a GP needs two samples; the replicates are collapsed exactly.
+    ``template``: the z-process of an earlier EM iteration on the same inputs and noise, whose
+    grouping and distances are reused (only the targets change).
     """
     if U.shape[0] == 1:
+        z = np.repeat(z, 2)
+    if template is not None:
+        gp = template._derive(zk, y=z)
+        if not prepare:
+            gp._solve()
+        return gp
+    if U.shape[0] == 1:
         gp = make(zk, alpha=np.repeat(2.0 * var, 2))
-        return (gp._prepare if prepare else gp.fit)(np.repeat(U, 2, axis=0), np.repeat(z, 2))
+        return (gp._prepare if prepare else gp.fit)(np.repeat(U, 2, axis=0), z)
     gp = make(zk, alpha=var)
     return (gp._prepare if prepare else gp.fit)(U, z)
 
@@ -260,6 +270,7 @@ def most_likely_em(
     lo, hi = (float(b) for b in log_noise_bounds)
 
     make = functools.partial(fixed_gp, collapse_replicates=collapse_replicates)
+    opt["cache"] = {}  # stacked distances of the fixed inputs, shared by every learning step
 
     # Step 1: homoscedastic GP G1, its noise kept within the bounds.
     kernel = _with_noise_bounds(kernel, lo, hi)
@@ -272,7 +283,11 @@ def most_likely_em(
     groups = []  # the GP's own distinct inputs (its solve is on them): X, inverse, counts, bias
     for gp in gps:
         d = gp._data
-        groups.append((d.X, d.inverse, d.counts, _log_mean_chi2_bias(d.counts)))
+        groups.append(
+            (d.X, d.inverse, d.counts, _log_mean_chi2_bias(d.counts), _log_mean_chi2_var(d.counts))
+        )
+    base = gps  # inputs, replicate groups and distances of every later step's GPs
+    z_templates: Sequence[GaussianProcess | None] = [None] * len(gps)
     log_r0 = float(np.clip(math.log(gps[0]._noise_level), lo, hi))
     log_r = [np.full(X.shape[0], log_r0) for X, _ in datasets]
     sig = signal_kernel(homoscedastic_kernel) if refit_kernel is None else refit_kernel.clone()
@@ -289,7 +304,7 @@ def most_likely_em(
         n_iter += 1
         # Step 2: noise estimate at every training input from the posterior of f.
         targets = []
-        for gp, (X, y), (U, inverse, counts, bias), lr in zip(
+        for gp, (X, y), (U, inverse, counts, bias, _), lr in zip(
             gps, datasets, groups, log_r, strict=True
         ):
             mu_u, var_u = gp._latent_at_training()  # at the distinct inputs, then per sample
@@ -316,23 +331,23 @@ def most_likely_em(
         else:
             off = float(noise_offset)
         noise_gps = [
-            _fit_z(make, zk, g[0], z - off, _log_mean_chi2_var(g[2]), prepare=learn)
-            for g, z in zip(groups, targets, strict=True)
+            _fit_z(make, zk, g[0], z - off, g[4], prepare=learn, template=t)
+            for g, z, t in zip(groups, targets, z_templates, strict=True)
         ]
+        z_templates = noise_gps
         if learn:
             fit_shared_hyperparameters(noise_gps, random_state=rng, **opt)
             zk = noise_gps[0].kernel_.clone()
-        new_log_r = [  # z at the training inputs (the z-process's own, distinct inputs)
-            np.clip(zgp._latent_mean_at_training()[:, 0][g[1]] + off, lo, hi)
+        new_log_r_u = [  # z at the distinct training inputs (the z-process's own inputs)
+            np.clip(zgp._latent_mean_at_training()[:, 0] + off, lo, hi)
             for zgp, g in zip(noise_gps, groups, strict=True)
         ]
-        # Step 4: GP with R = diag(r(x_i)), Eq. (5).
-        gps = [
-            (make(sig, alpha=np.exp(lr))._prepare if learn else make(sig, alpha=np.exp(lr)).fit)(
-                X, y
-            )
-            for lr, (X, y) in zip(new_log_r, datasets, strict=True)
-        ]
+        new_log_r = [lr[g[1]] for lr, g in zip(new_log_r_u, groups, strict=True)]
+        # Step 4: GP with R = diag(r(x_i)), Eq. (5), on the inputs and groups of step 1.
+        gps = [b._derive(sig, alpha=np.exp(lr)) for b, lr in zip(base, new_log_r_u, strict=True)]
+        if not learn:
+            for gp in gps:
+                gp._solve()
         if learn:
             fit_shared_hyperparameters(gps, random_state=rng, **opt)
             sig = gps[0].kernel_.clone()

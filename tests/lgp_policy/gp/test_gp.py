@@ -280,6 +280,64 @@ def test_stacked_lml_equals_the_sum_of_the_models(kernel, per_sample_noise):
         np.testing.assert_allclose(grad, np.sum([p[1] for p in parts], axis=0), atol=1e-9)
 
 
+@pytest.mark.parametrize(
+    "kernel, per_sample_noise",
+    [
+        (SquaredExponential(1.0, 0.1) + WhiteNoise(0.1), False),  # step 1 of the EM
+        (Exponential(1.0, 0.2), False),  # the z-process: the same known noise everywhere
+    ],
+)
+def test_stacked_lml_shares_the_factorisation_of_equal_windows(kernel, per_sample_noise):
+    """Windows of one time grid (replicated, as demonstrations are) have the same K_y up to the
+    last bits of their distances: they are one problem with the windows' targets side by side,
+    and the kernel is evaluated on the grid's distinct distances; the value and the gradient
+    are still the sum of the windows' _lml."""
+    rng = np.random.default_rng(3)
+    grid = np.linspace(0.0, 1.0, 200)
+    gps = []
+    for lo, hi in ((0, 46), (46, 92), (92, 138), (138, 150)):  # three equal windows, one short
+        X = np.tile(grid[lo:hi], 4)[:, None]
+        y = np.sin(6.0 * X[:, 0]) + 0.1 * rng.standard_normal(X.shape[0])
+        alpha = 0.0 if kernel.leaves()[-1].is_noise else 0.3
+        gps.append(
+            GaussianProcess(kernel, optimizer=None, normalize_y=False, alpha=alpha).fit(X, y)
+        )
+    stacked = _StackedLML.build(gps)
+    assert stacked is not None
+    assert stacked.Y.shape[0] == 2  # the three equal windows are one problem
+    assert all(v is not None for v in stacked.distinct.values())
+    for shift in (0.0, 0.5, -0.8):
+        theta = kernel.theta + shift
+        value, grad = stacked(theta)
+        parts = [gp._lml(theta, eval_gradient=True) for gp in gps]
+        assert value == pytest.approx(sum(p[0] for p in parts), rel=1e-11)
+        np.testing.assert_allclose(
+            grad, np.sum([p[1] for p in parts], axis=0), rtol=1e-9, atol=1e-8
+        )
+
+
+def test_derived_gp_equals_a_prepared_one(data):
+    """_derive (the EM's later steps on the same inputs) gives the GP _prepare would."""
+    X, y = data
+    kernel = SquaredExponential(1.3, 0.7)
+    base = GaussianProcess(_kernel(), optimizer=None, normalize_y=False).fit(X, y)
+    alpha_u = np.exp(np.sin(3.0 * base._data.X[:, 0]) - 2.0)  # per distinct input
+    y2 = np.cos(X[:, 0])
+    derived = base._derive(kernel, alpha=alpha_u, y=y2)
+    derived._solve()
+    fresh = GaussianProcess(
+        kernel, optimizer=None, normalize_y=False, alpha=alpha_u[base._data.inverse]
+    ).fit(X, y2)
+    assert derived._data.collapsed and fresh._data.collapsed
+    np.testing.assert_array_equal(derived.alpha_, fresh.alpha_)
+    np.testing.assert_array_equal(derived.L_, fresh.L_)
+    assert derived.log_marginal_likelihood_value_ == fresh.log_marginal_likelihood_value_
+    Xs = np.linspace(0.0, 5.0, 7)[:, None]
+    np.testing.assert_array_equal(derived.predict(Xs), fresh.predict(Xs))
+    with pytest.raises(ValueError, match="normalize_y"):
+        GaussianProcess(_kernel(), optimizer=None).fit(X, y)._derive(kernel)
+
+
 def test_shared_hyperparameters_same_with_and_without_stacking(data, monkeypatch):
     X, y = data
     parts = [(X[i::3], y[i::3]) for i in range(3)]
@@ -289,7 +347,7 @@ def test_shared_hyperparameters_same_with_and_without_stacking(data, monkeypatch
         return fit_shared_hyperparameters(gps)
 
     stacked = learn()
-    monkeypatch.setattr(_StackedLML, "build", classmethod(lambda cls, gps: None))
+    monkeypatch.setattr(_StackedLML, "build", classmethod(lambda cls, gps, cache=None: None))
     np.testing.assert_allclose(learn(), stacked, atol=1e-5)
 
 
