@@ -36,6 +36,7 @@ __all__ = [
     "NotPositiveDefiniteError",
     "default_kernel",
     "fit_shared_hyperparameters",
+    "fit_shared_hyperparameters_many",
     "maximize_lml",
 ]
 
@@ -185,8 +186,8 @@ def fit_shared_hyperparameters(
     independent data sets' log marginal likelihoods is the likelihood of the product-of-experts
     model of local GPs (Deisenroth & Ng 2015). The result is applied to ``gps`` and to
     ``apply_to`` (default: none besides ``gps``) without further optimisation. ``cache``: a
-    dict owned by a caller that learns repeatedly on the same inputs (the EM), in which the
-    stacked distances are kept between calls (see :meth:`_StackedLML.build`).
+    dict owned by a caller that learns repeatedly on the same inputs (the EM), in which
+    distances are kept between calls (see :meth:`_StackedLML.build_many`).
 
     Returns:
         the shared ``theta`` (log space).
@@ -199,8 +200,7 @@ def fit_shared_hyperparameters(
             out = stacked(theta)
             if out is not None:
                 return out
-        values, grads = zip(*(gp._lml(theta, eval_gradient=True) for gp in gps), strict=True)
-        return float(np.sum(values)), np.sum(grads, axis=0)
+        return _lml_sum(gps, theta)
 
     theta = maximize_lml(
         total,
@@ -216,28 +216,93 @@ def fit_shared_hyperparameters(
     return theta
 
 
+def _lml_sum(gps: list[GaussianProcess], theta: NDArray[np.float64]):
+    values, grads = zip(*(gp._lml(theta, eval_gradient=True) for gp in gps), strict=True)
+    return float(np.sum(values)), np.sum(grads, axis=0)
+
+
+def fit_shared_hyperparameters_many(
+    groups: list[list[GaussianProcess]],
+    *,
+    optimizer: Optimizer = "L-BFGS-B",
+    n_restarts: int = 0,
+    random_state: int | np.random.Generator | None = None,
+    max_iter: int = 200,
+    cache: dict[Any, Any] | None = None,
+) -> list[NDArray[np.float64]]:
+    """:func:`fit_shared_hyperparameters` for independent groups (one ``theta`` each): the
+    outputs of one frame, each with its local models.
+
+    With L-BFGS-B and no restarts the groups' searches run in lockstep
+    (:func:`lgp_policy.gp._lbfgsb.minimize_many`) and the likelihoods they ask for in one
+    round are evaluated in one batched pass (:class:`_StackedLML`); each group takes exactly
+    the steps it would take alone (same search, same values to rounding). Otherwise the
+    groups are learnt one after another (restarts draw from ``random_state`` in group order).
+    """
+    stacked = None
+    if optimizer == "L-BFGS-B" and n_restarts == 0 and len(groups) > 1:
+        stacked = _StackedLML.build_many(groups, cache)
+    if stacked is None:
+        return [
+            fit_shared_hyperparameters(
+                gps,
+                optimizer=optimizer,
+                n_restarts=n_restarts,
+                random_state=random_state,
+                max_iter=max_iter,
+                cache=cache,
+            )
+            for gps in groups
+        ]
+
+    def evaluate(indices, thetas):
+        out = []
+        for i, theta, res in zip(indices, thetas, stacked.evaluate(indices, thetas), strict=True):
+            value, grad = _lml_sum(groups[i], theta) if res is None else res
+            # as maximize_lml: minimise -LML, a failed evaluation is a wall
+            out.append((1e25, np.zeros_like(theta)) if not np.isfinite(value) else (-value, -grad))
+        return out
+
+    bounds = [np.asarray(gps[0].kernel_.bounds, dtype=np.float64) for gps in groups]
+    starts = [
+        np.clip(gps[0].kernel_.theta, b[:, 0], b[:, 1])
+        for gps, b in zip(groups, bounds, strict=True)
+    ]
+    results = minimize_many(evaluate, starts, bounds, max_iter)
+    thetas = []
+    for gps, b, (theta, _) in zip(groups, bounds, results, strict=True):
+        theta = np.clip(theta, b[:, 0], b[:, 1])
+        for gp in gps:
+            gp._set_theta(theta)
+        thetas.append(theta)
+    return thetas
+
+
 class _StackedLML:
-    """The sum over several fitted GPs of Eq. (4) and its gradient, in one batched pass.
+    """Eq. (4) and its gradient for several groups of GPs ("owners", each the local models of
+    one output with one shared ``theta``), each group's sum in one batched pass for all.
 
     The GPs' (unique-input) problems are stacked into ``(P, m, m)`` arrays, ``m`` the largest;
     a smaller problem is padded with independent unit-variance dummy inputs with target 0
     (identity rows and columns of ``K_y``: their distances to everything are ``PAD_DISTANCE``,
     so every kernel term and its gradient is exactly 0 there), which add exactly 0 to the value
     and the gradient. The kernel matrices, their gradients and the contractions are then one
-    numpy operation each for all ``P`` problems, and only the factorisation and inversion run
-    per problem (LAPACK, measured faster than numpy's stacked routines at these sizes): for the
-    small local models of :class:`~lgp_policy.gp.local.LocalGP` the per-GP Python work of
+    numpy operation each for all ``P`` problems (each with its owner's ``theta``), and only the
+    factorisation and inversion run per problem (LAPACK, measured faster than numpy's stacked
+    routines at these sizes): for the small local models of
+    :class:`~lgp_policy.gp.local.LocalGP` the per-GP Python work of
     :meth:`GaussianProcess._lml` cost several times the algebra. Same value and gradient as the
-    sum of the GPs' ``_lml`` to rounding (tested); where any ``K_y`` needs jitter ``__call__``
-    returns ``None`` and the caller falls back to that sum.
+    sum of the GPs' ``_lml`` to rounding (tested); where an owner's ``K_y`` needs jitter its
+    result is ``None`` and the caller falls back to that sum.
 
     Repeated work is done once:
 
-    * GPs whose ``K_y`` is the same matrix for every ``theta`` (equal training distances,
-      replicate counts and ``alpha``: the local models of one time grid in the homoscedastic
-      step and in the z-process of the EM) are one problem whose targets are the members'
-      targets side by side (a multi-output GP): one factorisation instead of one per model;
-    * where the stacked distances take few distinct values (a regular grid), the kernel is
+    * GPs of one owner whose ``K_y`` is the same matrix for every ``theta`` (equal training
+      distances, replicate counts and ``alpha``: the local models of one time grid in the
+      homoscedastic step and in the z-process of the EM) are one problem whose targets are the
+      members' targets side by side (a multi-output GP): one factorisation instead of one per
+      model;
+    * where a problem's distances take few distinct values (a regular grid), the kernel is
       evaluated on those values and gathered.
 
     Both compare distances to ``2^-40`` relative (those of two equally spaced windows differ in
@@ -256,199 +321,270 @@ class _StackedLML:
     #: the stacked entries.
     DISTINCT_FRACTION = 0.125
 
-    def __init__(self, gps: list[GaussianProcess], cache: dict[Any, Any] | None = None) -> None:
-        self.gps = gps
+    def __init__(self, owners: list[list[GaussianProcess]], cache: dict[Any, Any]) -> None:
+        self.owners = owners
+        first = owners[0][0]
         self.parts: list[tuple[str, int]] = []
         start = 0
-        for leaf in gps[0].kernel_.leaves():
+        for leaf in first.kernel_.leaves():
             self.parts.append(("noise" if leaf.is_noise else type(leaf).__name__, start))
             start += leaf.n_dims
+        self.n_theta = start
         kinds = sorted({kind for kind, _ in self.parts if kind != "noise"})
-        n_t = gps[0]._data.ybar.shape[1]
-        # Problems: GPs whose K_y coincides for every theta share one (first member's) matrix.
-        cache = {} if cache is None else cache
-        problems: list[list[int]] = []
-        for b, gp in enumerate(gps):
-            for members in problems:
-                if _same_covariance(gps[members[0]], gp, kinds, cache):
-                    members.append(b)
-                    break
-            else:
-                problems.append([b])
-        sizes = [gps[members[0]]._data.X.shape[0] for members in problems]
+        n_t = first._data.ybar.shape[1]
+        # Problems: GPs of one owner whose K_y coincides for every theta share one matrix.
+        problems: list[tuple[int, list[GaussianProcess]]] = []
+        for o, gps in enumerate(owners):
+            mine: list[list[GaussianProcess]] = []
+            for gp in gps:
+                for members in mine:
+                    if _same_covariance(members[0], gp, kinds, cache):
+                        members.append(gp)
+                        break
+                else:
+                    mine.append([gp])
+            problems += [(o, members) for members in mine]
+        sizes = [members[0]._data.X.shape[0] for _, members in problems]
         P, m = len(problems), max(sizes)
-        R = n_t * max(len(members) for members in problems)
+        R = n_t * max(len(members) for _, members in problems)
+        self.owner = np.array([o for o, _ in problems])
+        self.rows = [np.flatnonzero(self.owner == o) for o in range(len(owners))]
         valid = np.zeros((P, m), dtype=bool)
         for p, n in enumerate(sizes):
             valid[p, :n] = True
+        # Per kernel kind: the stacked distances (P, m, m), or the distinct distances of every
+        # problem side by side with each entry's index into them (and the owner of each value).
         self.dist: dict[str, NDArray[np.float64]] = {}
-        self.distinct: dict[str, tuple[NDArray[np.float64], NDArray[np.intp]] | None] = {}
-        firsts = tuple(gps[members[0]]._data.X for members in problems)
-        key = ("stack", tuple(kinds), tuple(id(X) for X in firsts))
-        if key in cache:  # the same inputs stacked the same way: reuse the distances
-            self.dist, self.distinct = cache[key][1:]
-        for kind in [k for k in kinds if k not in self.dist]:
-            D = np.full(
-                (P, m, m),
-                self.PAD_DISTANCE**2 if kind == "SquaredExponential" else self.PAD_DISTANCE,
-            )
-            for p, (members, n) in enumerate(zip(problems, sizes, strict=True)):
-                gp = gps[members[0]]
-                if kind == "SquaredExponential":
-                    D[p, :n, :n] = gp._training_sqdist()
-                else:
-                    D[p, :n, :n] = gp._training_dist()
+        self.distinct: dict[str, tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp]]]
+        self.distinct = {}
+        for kind in kinds:
+            pad = self.PAD_DISTANCE**2 if kind == "SquaredExponential" else self.PAD_DISTANCE
+            per = [_distinct_distances(members[0], kind, cache) for _, members in problems]
+            n_values = sum(v.size for v, _ in per) + 1
+            if n_values <= self.DISTINCT_FRACTION * P * m * m:
+                values = np.concatenate([*(v for v, _ in per), [pad]])
+                value_owner = np.concatenate(
+                    [*(np.full(v.size, o) for (v, _), o in zip(per, self.owner, strict=True)), [0]]
+                )
+                index = np.full((P, m, m), n_values - 1, dtype=np.intp)
+                offset = 0
+                for p, ((v, inv), n) in enumerate(zip(per, sizes, strict=True)):
+                    index[p, :n, :n] = inv + offset
+                    offset += v.size
+                self.distinct[kind] = (values, value_owner, index)
+                continue
+            D = np.full((P, m, m), pad)
+            for p, ((_, members), n) in enumerate(zip(problems, sizes, strict=True)):
+                gp = members[0]
+                D[p, :n, :n] = (
+                    gp._training_sqdist() if kind == "SquaredExponential" else gp._training_dist()
+                )
             self.dist[kind] = D
-            values, inverse = np.unique(_round_mantissa(D), return_inverse=True)
-            if values.size <= self.DISTINCT_FRACTION * D.size:
-                self.distinct[kind] = (values, inverse.reshape(D.shape))
-            else:
-                self.distinct[kind] = None
-        cache[key] = (firsts, self.dist, self.distinct)  # (firsts: keeps the ids valid)
         self.Y = np.zeros((P, m, R))
         self.counts = np.ones((P, m))
         self.alpha = np.zeros((P, m))
         self.scatter = np.zeros((P, m))  # summed over members and targets
         self.n_cols = np.zeros(P)  # target columns per problem
-        for p, (members, n) in enumerate(zip(problems, sizes, strict=True)):
-            first = gps[members[0]]
-            self.counts[p, :n] = first._data.counts
-            self.alpha[p, :n] = first._alpha_u
-            for k, b in enumerate(members):
-                d = gps[b]._data
+        n_inputs = np.zeros(P)  # training inputs (with replicates) per problem, all members
+        for p, ((_, members), n) in enumerate(zip(problems, sizes, strict=True)):
+            self.counts[p, :n] = members[0]._data.counts
+            self.alpha[p, :n] = members[0]._alpha_u
+            for k, gp in enumerate(members):
+                d = gp._data
                 self.Y[p, :n, k * n_t : (k + 1) * n_t] = d.ybar
                 self.scatter[p, :n] += np.sum(d.scatter, axis=1)
             self.n_cols[p] = len(members) * n_t
-        self.is_valid = valid
+            n_inputs[p] = len(members) * n
         self.valid = valid.astype(np.float64)
         self.weight = self.valid * self.n_cols[:, None]  # target columns at each input
         self.pad = 1.0 - self.valid  # unit diagonal of the padding
         self.n_t = n_t
-        self.n_total = int(sum(gp._data.X.shape[0] for gp in gps))
-        self.replicated = bool(np.any(self.counts > 1.0))
         # Constant parts of Eq. (4) and of the replicate correction (``_replicate_correction``):
         # per group of c replicates, -(c-1)/2 log(2 pi s) - 1/2 log c - scatter / (2 s) per
         # target column.
         c = self.counts
+        self.replicated = bool(np.any(c > 1.0))
         self.inv_counts = self.valid / c
         self.rep_mask = valid & (c > 1.0)
         self.weight_c1 = self.weight * (c - 1.0)
-        self.lml_const = -0.5 * n_t * self.n_total * _LOG_2PI - 0.5 * float(
-            np.vdot(self.weight, (c - 1.0) * _LOG_2PI + np.log(c))
+        self.lml_const = -0.5 * n_t * n_inputs * _LOG_2PI - 0.5 * np.sum(
+            self.weight * ((c - 1.0) * _LOG_2PI + np.log(c)), axis=1
         )
         self.twice_off_diagonal = 2.0 - np.eye(m)
+        self.theta = np.array([gps[0].kernel_.theta for gps in owners])  # last theta per owner
 
     @classmethod
     def build(
         cls, gps: list[GaussianProcess], cache: dict[Any, Any] | None = None
     ) -> _StackedLML | None:
-        """A stacked evaluator, or ``None`` where the kernels are not all of the supported
-        form (isotropic squared-exponential / exponential terms plus white noise).
-
-        ``cache``: a dict kept by the caller between builds on the same input arrays (the
-        iterations of the EM): the stacked distances and which inputs have equal distances are
-        stored in it, keyed by the identity of the GPs' input arrays (which it keeps alive)."""
+        """A stacked evaluator of the sum over ``gps`` (one owner), or ``None`` where the
+        kernels are not all of the supported form (isotropic squared-exponential /
+        exponential terms plus white noise). ``cache``: see :meth:`build_many`."""
         if len(gps) < 2:
             return None
-        kinds = [type(leaf) for leaf in gps[0].kernel_.leaves()]
-        for leaf in gps[0].kernel_.leaves():
+        return cls.build_many([gps], cache)
+
+    @classmethod
+    def build_many(
+        cls, owners: list[list[GaussianProcess]], cache: dict[Any, Any] | None = None
+    ) -> _StackedLML | None:
+        """A stacked evaluator for several owners (lists of GPs), or ``None`` (see
+        :meth:`build`). ``cache``: a dict kept by the caller between builds on the same input
+        arrays (the iterations of the EM): distinct distances and which inputs have equal
+        distances are stored in it, keyed by the identity of the GPs' input arrays (which it
+        keeps alive)."""
+        first = owners[0][0]
+        kinds = [type(leaf) for leaf in first.kernel_.leaves()]
+        for leaf in first.kernel_.leaves():
             if leaf.is_noise:
                 if type(leaf) is not WhiteNoise:
                     return None
             elif type(leaf) not in _CACHED_KERNELS or leaf.n_dims != 2:
                 return None
-        n_t = gps[0]._data.ybar.shape[1]
-        for gp in gps:
-            if [type(leaf) for leaf in gp.kernel_.leaves()] != kinds:
+        n_t = first._data.ybar.shape[1]
+        for gps in owners:
+            for gp in gps:
+                if [type(leaf) for leaf in gp.kernel_.leaves()] != kinds:
+                    return None
+                if gp._data.ybar.shape[1] != n_t:
+                    return None
+            if np.any(np.abs(gps[0].kernel_.bounds) > 50.0):  # keep PAD_DISTANCE products finite
                 return None
-            if gp._data.ybar.shape[1] != n_t:
-                return None
-        if np.any(np.abs(gps[0].kernel_.bounds) > 50.0):  # keep PAD_DISTANCE products finite
-            return None
-        return cls(gps, cache)
-
-    def _kernel(self, kind: str, theta: NDArray[np.float64]):
-        """``(K, dK/dlog l)`` of one stacked isotropic term (``dK/dlog variance`` is ``K``)."""
-        distinct = self.distinct[kind]
-        if kind == "SquaredExponential":
-            if distinct is None:
-                K, G = SquaredExponential.from_sqdist(theta, self.dist[kind], True)
-                return K, G[1]
-            values, inverse = distinct
-            Kv, Gv = SquaredExponential.from_sqdist(theta, values, True)
-        else:
-            if distinct is None:
-                K, G = Exponential.from_dist(theta, self.dist[kind], True)
-                return K, G[1]
-            values, inverse = distinct
-            Kv, Gv = Exponential.from_dist(theta, values, True)
-        return Kv[inverse], Gv[1][inverse]
+        return cls(owners, {} if cache is None else cache)
 
     def __call__(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]] | None:
-        theta = np.asarray(theta, dtype=np.float64)
-        for gp in self.gps:
-            gp.n_lml_evaluations_ = getattr(gp, "n_lml_evaluations_", 0) + 1
+        """Value and gradient of the first owner's sum at ``theta``."""
+        return self.evaluate([0], [theta])[0]
+
+    def _kernel(self, kind: str, j: int, theta_p, rows):
+        """``(K, dK/dlog l)`` of one stacked isotropic term with each problem's ``theta``
+        ``(P, 2)`` (``dK/dlog variance`` is ``K``)."""
+        if kind in self.distinct:
+            values, value_owner, index = self.distinct[kind]
+            t = self.theta[value_owner, j : j + 2]  # every owner's latest theta
+            if kind == "SquaredExponential":
+                d = values * np.exp(-2.0 * t[:, 1])
+                Kv = np.multiply(d, -0.5)
+            else:
+                d = values * np.exp(-t[:, 1])
+                Kv = np.negative(d)
+            np.exp(Kv, out=Kv)
+            Kv *= np.exp(t[:, 0])
+            d *= Kv
+            idx = index if rows is None else index[rows]
+            return Kv[idx], d[idx]
+        D = self.dist[kind] if rows is None else self.dist[kind][rows]
+        if kind == "SquaredExponential":
+            d = D * np.exp(-2.0 * theta_p[:, 1])[:, None, None]
+            K = np.multiply(d, -0.5)
+        else:
+            d = D * np.exp(-theta_p[:, 1])[:, None, None]
+            K = np.negative(d)
+        np.exp(K, out=K)
+        K *= np.exp(theta_p[:, 0])[:, None, None]
+        d *= K
+        return K, d
+
+    def evaluate(
+        self, owners: list[int], thetas: list[NDArray[np.float64]]
+    ) -> list[tuple[float, NDArray[np.float64]] | None]:
+        """``[(value, gradient) or None, ...]`` of the sums of ``owners`` at ``thetas``."""
+        sel = list(owners)
+        for o, th in zip(sel, thetas, strict=True):
+            self.theta[o] = th
+            for gp in self.owners[o]:
+                gp.n_lml_evaluations_ = getattr(gp, "n_lml_evaluations_", 0) + 1
+        if sel == list(range(len(self.owners))):
+            rows = None
+            owner_p = self.owner
+        else:
+            rows = np.concatenate([self.rows[o] for o in sel])
+            owner_p = self.owner[rows]
+        take = (lambda a: a) if rows is None else (lambda a: a[rows])
+        theta_p = self.theta[owner_p]  # (P, n_theta)
         K: NDArray[np.float64] | None = None
         grads: list[tuple[int, NDArray[np.float64]]] = []
-        noise, noise_idx = 0.0, []
+        noise = np.zeros(owner_p.shape[0])
+        noise_idx: list[int] = []
         for kind, j in self.parts:
             if kind == "noise":
-                noise += math.exp(theta[j])
+                noise += np.exp(theta_p[:, j])
                 noise_idx.append(j)
                 continue
-            Kl, G1 = self._kernel(kind, theta[j : j + 2])
+            Kl, G1 = self._kernel(kind, j, theta_p[:, j : j + 2], rows)
             K = Kl.copy() if K is None else K + Kl
             grads += [(j, Kl), (j + 1, G1)]
         if K is None:  # pragma: no cover - build() requires a signal term
-            return None
-        s = noise + self.alpha  # one observation's noise variance at each unique input
-        P = K.shape[0]
-        diag = K.reshape(P, -1)[:, :: K.shape[1] + 1]  # a view of the diagonals
-        diag += s * self.inv_counts + self.pad
+            return [None] * len(sel)
+        P, m = K.shape[0], K.shape[1]
+        s = noise[:, None] + take(self.alpha)  # one observation's noise variance per input
+        inv_counts = take(self.inv_counts)
+        diag = K.reshape(P, -1)[:, :: m + 1]  # a view of the diagonals
+        diag += s * inv_counts + take(self.pad)
         # In place, no copies: K[p].T is K[p] (symmetric) in Fortran order; its factor and then
         # the inverse's triangle overwrite it, so W (= K, read in C order) holds one triangle
         # of K_y^-1 and zeros in the other (``clean``).
+        failed = np.zeros(P, dtype=bool)
         factors = []
         for p in range(P):
             L, info = _potrf(K[p].T, lower=1, overwrite_a=1, clean=1)
-            if info != 0:
-                return None
+            if info != 0:  # this owner falls back; an identity keeps the rest finite
+                failed[p] = True
+                K[p] = np.eye(m)
+                L = K[p].T
             factors.append(L)
         logdet = np.sum(np.log(diag), axis=1)  # the factors' diagonals
-        a = np.empty_like(self.Y)
+        Y = take(self.Y)
+        a = np.empty_like(Y)
         for p, L in enumerate(factors):
-            a[p] = _potrs(L, self.Y[p], lower=1)[0]
-            _, info = _potri(L, lower=1, overwrite_c=1)
-            if info != 0:  # pragma: no cover - L comes from a successful factorisation
-                return None
+            a[p] = _potrs(L, Y[p], lower=1)[0]
+            _potri(L, lower=1, overwrite_c=1)
         W = K
-        cols = self.n_cols
-        lml = -0.5 * float(np.vdot(self.Y, a)) - float(np.dot(cols, logdet)) + self.lml_const
+        cols = take(self.n_cols)
+        value = -0.5 * np.sum(Y * a, axis=(1, 2)) - cols * logdet + take(self.lml_const)
         if self.replicated:
-            s_rep = np.where(self.rep_mask & (s > 0), s, 1.0)  # (c - 1 = 0 where s = 0)
+            s_rep = np.where(take(self.rep_mask) & (s > 0), s, 1.0)  # (c - 1 = 0 where s = 0)
             inv_s = 1.0 / s_rep
-            lml -= 0.5 * (
-                float(np.vdot(self.weight_c1, np.log(s_rep))) + float(np.vdot(self.scatter, inv_s))
-            )
-        W2 = W * self.twice_off_diagonal  # tr(K_y^-1 G) = sum(W2 * G) for symmetric G
-        W2 = W2.reshape(P, 1, -1)
-        grad = np.zeros_like(theta)
+            scatter, weight_c1 = take(self.scatter), take(self.weight_c1)
+            value -= 0.5 * np.sum(weight_c1 * np.log(s_rep) + scatter * inv_s, axis=1)
+        W2 = (W * self.twice_off_diagonal).reshape(P, 1, -1)  # tr(K_y^-1 G) = sum(W2 * G)
+        grad = np.zeros((P, self.n_theta))
         for j, G in grads:
-            quad = float(np.vdot(a, G @ a))
+            quad = np.sum(a * (G @ a), axis=(1, 2))
             trace = np.matmul(W2, G.reshape(P, -1, 1)).reshape(P)
-            grad[j] = 0.5 * (quad - float(np.dot(cols, trace)))
+            grad[:, j] = 0.5 * (quad - cols * trace)
         if noise_idx:
             A_diag = np.sum(a * a, axis=2) - cols[:, None] * diag  # 2 diag(dLML/dK_y)
-            dnoise = 0.5 * float(np.vdot(self.inv_counts, A_diag))
+            dnoise = 0.5 * np.sum(inv_counts * A_diag, axis=1)
             if self.replicated:
-                dnoise += 0.5 * float(
-                    np.vdot(self.scatter, inv_s * inv_s) - np.vdot(self.weight_c1, inv_s)
-                )
+                dnoise += 0.5 * np.sum(scatter * inv_s * inv_s - weight_c1 * inv_s, axis=1)
             for j in noise_idx:
-                grad[j] = dnoise * math.exp(theta[j])
-        if not (math.isfinite(lml) and all(map(math.isfinite, grad))):  # theta beyond bounds
-            return None
-        return lml, grad
+                grad[:, j] = dnoise * np.exp(theta_p[:, j])
+        out: list[tuple[float, NDArray[np.float64]] | None] = []
+        for o in sel:
+            mine = owner_p == o
+            if np.any(failed[mine]):
+                out.append(None)
+                continue
+            lml = float(np.sum(value[mine]))
+            g = np.sum(grad[mine], axis=0)
+            finite = math.isfinite(lml) and all(map(math.isfinite, g))
+            out.append((lml, g) if finite else None)  # e.g. theta beyond bounds
+        return out
+
+
+def _distinct_distances(
+    gp: GaussianProcess, kind: str, cache: dict[Any, Any]
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Distinct training distances of ``gp`` (to ``2^-40``) and each entry's index into them."""
+    X = gp._data.X
+    key = ("distinct", kind, id(X))
+    if key not in cache:
+        D = gp._training_sqdist() if kind == "SquaredExponential" else gp._training_dist()
+        values, inverse = np.unique(_round_mantissa(D), return_inverse=True)
+        cache[key] = (values, inverse.reshape(D.shape).astype(np.intp), X)  # (X: keeps the id)
+    values, inverse, _ = cache[key]
+    return values, inverse
 
 
 #: Low mantissa bits ignored when distances are compared (relative 2^-40, about 1e-12).

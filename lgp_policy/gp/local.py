@@ -81,6 +81,7 @@ from lgp_policy.gp.heteroscedastic import (
     check_noise_bounds,
     em_warning,
     fit_noise_model,
+    most_likely_em_many,
     signal_kernel,
 )
 from lgp_policy.gp.kernels import Kernel, SquaredExponential
@@ -146,6 +147,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
     assignments_: NDArray[np.int64]
     models_: list[Any]
     estimators_: list[LocalGP] | None
+    _assign_kernel: Kernel
 
     def __init__(
         self,
@@ -344,13 +346,30 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             # One noise process per output: an independent LocalGP per column (same clusters).
             rng = check_random_state(self.random_state)
             params = {**self.get_params(deep=False), "random_state": rng}
-            self.estimators_ = [LocalGP(**params).fit(X, y[:, j]) for j in range(y.shape[1])]
+            self.estimators_ = [LocalGP(**params) for _ in range(y.shape[1])]
+            if self.method == "em" and self.hyperparameters == "shared" and self.optimizer:
+                _fit_columns_in_lockstep(self.estimators_, X, y)
+            else:
+                for j, e in enumerate(self.estimators_):
+                    e.fit(X, y[:, j])
             first: LocalGP = self.estimators_[0]
             self.X_train_, self.y_train_ = X, y
             self.n_features_in_ = X.shape[1]
             self.centers_, self.assignments_ = first.centers_, first.assignments_
             self.models_ = [e.models_ for e in self.estimators_]
             return self
+        kernel, Yn, index_sets, rng = self._begin(X, y)
+        # Algorithm 1, lines 22-25: one GP per local data set.
+        if self.local_model == "exact":
+            self.models_ = self._fit_exact(kernel, X, Yn, index_sets, rng)
+        else:
+            self.models_ = self._fit_heteroscedastic(kernel, X, Yn[:, 0], index_sets, rng)
+        self._prepare_prediction()
+        return self
+
+    def _begin(self, X, y):
+        """``fit`` up to the local models: normalisation, Algorithm 1 and the local index sets.
+        Returns ``(kernel, Yn, index_sets, rng)``."""
         kernel = default_kernel() if self.kernel is None else self.kernel
         self._assign_kernel = signal_kernel(kernel)
         self._single_target = y.ndim == 1
@@ -374,13 +393,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
                 idx = np.repeat(idx, 2)
             index_sets.append(idx)
         self._index_sets = index_sets
-        # Algorithm 1, lines 22-25: one GP per local data set.
-        if self.local_model == "exact":
-            self.models_ = self._fit_exact(kernel, X, Yn, index_sets, rng)
-        else:
-            self.models_ = self._fit_heteroscedastic(kernel, X, Yn[:, 0], index_sets, rng)
-        self._prepare_prediction()
-        return self
+        return kernel, Yn, index_sets, rng
 
     def _shared_data(self, X, index_sets) -> tuple[list[NDArray[np.int64]], bool]:
         """Index sets that learn the shared hyperparameters, and whether they are complete.
@@ -428,17 +441,42 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         ]
 
     def _fit_heteroscedastic(self, kernel, X, yn, index_sets, rng) -> list[HeteroscedasticGP]:
+        plan = self._em_plan(kernel, X, yn, index_sets, rng)
+        learned = None
+        if plan["shared"]:
+            learned = fit_noise_model(
+                plan["subsets"], kernel, self.noise_kernel, method=self.method, **plan["em"]
+            )
+        return self._em_models(plan, learned)
+
+    def _em_plan(self, kernel, X, yn, index_sets, rng) -> dict[str, Any]:
+        """What the heteroscedastic local models are fitted from: the local data sets, the EM
+        options and, for shared hyperparameters, the subsets that learn them (``shared``)."""
         lo, hi = check_noise_bounds(self.noise_bounds)
         log_bounds = (2.0 * math.log(lo), 2.0 * math.log(hi))  # targets are standardised
-        noise_kernel = self.noise_kernel
-        datasets = [(X[idx], yn[idx]) for idx in index_sets]
-        em = {
-            "optimizer": self.optimizer,
-            "n_restarts": self.n_restarts,
-            "max_em_iter": self.max_em_iter,
-            "random_state": rng,
-            "log_noise_bounds": log_bounds,
+        plan: dict[str, Any] = {
+            "kernel": kernel,
+            "datasets": [(X[idx], yn[idx]) for idx in index_sets],
+            "em": {
+                "optimizer": self.optimizer,
+                "n_restarts": self.n_restarts,
+                "max_em_iter": self.max_em_iter,
+                "random_state": rng,
+                "log_noise_bounds": log_bounds,
+            },
+            "shared": self.hyperparameters == "shared" and self.optimizer is not None,
         }
+        if plan["shared"]:
+            # Learn the signal, noise and z-process hyperparameters once, on a bounded subset of
+            # the data (sum of the subsets' LMLs), then run every model's EM with them fixed.
+            subsets, plan["complete"] = self._shared_data(X, index_sets)
+            plan["subsets"] = [(X[i], yn[i]) for i in subsets]
+        return plan
+
+    def _em_models(self, plan: dict[str, Any], learned: Any) -> list[HeteroscedasticGP]:
+        """The local models from the plan and the shared EM's result ``learned``."""
+        kernel, datasets, em = plan["kernel"], plan["datasets"], plan["em"]
+        noise_kernel = self.noise_kernel
         params = {
             "method": self.method,
             "noise_kernel": noise_kernel,
@@ -450,20 +488,14 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         refit_kernel = None
         offset = None
         statuses: list[str] = []
-        if self.hyperparameters == "shared" and self.optimizer is not None:
-            # Learn the signal, noise and z-process hyperparameters once, on a bounded subset of
-            # the data (sum of the subsets' LMLs), then run every model's EM with them fixed.
-            subsets, complete = self._shared_data(X, index_sets)
-            learned = fit_noise_model(
-                [(X[i], yn[i]) for i in subsets], kernel, noise_kernel, method=self.method, **em
-            )
+        if learned is not None:
             statuses.append(learned.status)
             kernel = learned.homoscedastic_kernel
             noise_kernel = learned.noise_kernel
             refit_kernel = learned.signal_kernel
             offset = learned.noise_offset  # one z mean for all models: no jump between them
             params["noise_kernel"] = noise_kernel
-            if complete:  # every model took part with all its data: its EM result is final
+            if plan["complete"]:  # every model took part with all its data: its result is final
                 self._warn_em(statuses)
                 return [
                     HeteroscedasticGP._from_em(
@@ -654,6 +686,26 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         if self.estimators_:
             return float(sum(e.log_marginal_likelihood() for e in self.estimators_))
         return float(sum(m.log_marginal_likelihood() for m in self.models_))
+
+
+def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
+    """Fit ``columns[j]`` to ``y[:, j]`` as ``columns[j].fit(X, y[:, j])`` would (shared
+    hyperparameters, most-likely EM), with the columns' learning EMs run in lockstep
+    (:func:`~lgp_policy.gp.heteroscedastic.most_likely_em_many`): the same models to
+    rounding, their likelihood evaluations batched."""
+    plans = []
+    for j, e in enumerate(columns):
+        e._check_params()
+        e.estimators_ = None
+        kernel, Yn, index_sets, rng = e._begin(X, y[:, j])
+        plans.append(e._em_plan(kernel, X, Yn[:, 0], index_sets, rng))
+    em = plans[0]["em"]
+    learned = most_likely_em_many(
+        [plan["subsets"] for plan in plans], plans[0]["kernel"], columns[0].noise_kernel, **em
+    )
+    for e, plan, result in zip(columns, plans, learned, strict=True):
+        e.models_ = e._em_models(plan, result)
+        e._prepare_prediction()
 
 
 def _latent_model(model) -> GaussianProcess:

@@ -305,7 +305,9 @@ def test_stacked_lml_shares_the_factorisation_of_equal_windows(kernel, per_sampl
     stacked = _StackedLML.build(gps)
     assert stacked is not None
     assert stacked.Y.shape[0] == 2  # the three equal windows are one problem
-    assert all(v is not None for v in stacked.distinct.values())
+    assert set(stacked.distinct) == {type(leaf).__name__ for leaf in kernel.leaves()} - {
+        "WhiteNoise"
+    }  # the kernel is evaluated on the grid's distinct distances
     for shift in (0.0, 0.5, -0.8):
         theta = kernel.theta + shift
         value, grad = stacked(theta)
@@ -365,3 +367,32 @@ def test_prepared_gps_learn_the_same_as_fitted_ones(data):
     for a, b in zip(prepared, fitted, strict=True):
         np.testing.assert_allclose(a.predict(Xs, return_std=True), b.predict(Xs, return_std=True))
         np.testing.assert_allclose(a._latent_mean_at_training(), a._latent_at_training()[0])
+
+
+def test_stacked_owners_evaluate_each_owners_sum():
+    """Several owners (outputs, each with its local models and its own theta) in one stack:
+    any subset of them evaluated together gives each owner's own sum of _lml."""
+    rng = np.random.default_rng(5)
+    kernel = SquaredExponential(1.0, 0.1)
+    owners = []
+    for o in range(3):
+        gps = []
+        for lo, hi in ((0, 30), (30, 60), (60, 70)):
+            x = np.linspace(0.0, 1.0, 100)[lo:hi]
+            X = np.tile(x, 3)[:, None]
+            y = np.sin((3 + o) * X[:, 0]) + 0.1 * rng.standard_normal(X.shape[0])
+            alpha = np.tile(np.exp(rng.uniform(-4.0, -1.0, hi - lo)), 3)
+            gps.append(
+                GaussianProcess(kernel, optimizer=None, normalize_y=False, alpha=alpha).fit(X, y)
+            )
+        owners.append(gps)
+    stacked = _StackedLML.build_many(owners)
+    assert stacked is not None
+    thetas = [kernel.theta + np.array([0.3 * o, -0.2 * o]) for o in range(3)]
+    for subset in ([0, 1, 2], [2], [0, 2]):
+        results = stacked.evaluate(subset, [thetas[o] for o in subset])
+        for o, res in zip(subset, results, strict=True):
+            assert res is not None
+            parts = [gp._lml(thetas[o], eval_gradient=True) for gp in owners[o]]
+            assert res[0] == pytest.approx(sum(p[0] for p in parts), rel=1e-11)
+            np.testing.assert_allclose(res[1], np.sum([p[1] for p in parts], axis=0), rtol=1e-9)

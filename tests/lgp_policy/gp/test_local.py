@@ -314,3 +314,33 @@ def test_noise_model_does_not_overshoot_a_fast_split():
     _, std_fine = gp.predict(fine[:, None], return_std=True)
     spread_step = np.max(np.abs(np.diff(spread))) / 20  # the data's variation per fine step
     assert np.max(np.abs(np.diff(std_fine))) <= 2.0 * spread_step
+
+
+@pytest.mark.parametrize("complete", [True, False])
+def test_columns_fitted_in_lockstep_equal_separate_fits(complete):
+    """A 2-D y fits its columns' EMs in lockstep (batched likelihoods): each column's model is
+    the one a separate fit gives, to rounding, whether every local model learns the shared
+    hyperparameters (complete) or a thinned subset does."""
+    rng = np.random.default_rng(4)
+    grid = np.linspace(0.0, 1.0, 120)
+    X = np.tile(grid, 4)[:, None]  # four demonstrations on one grid, as the encoder has them
+    spread = 0.02 + 0.1 * grid  # noise that varies
+    Y = np.column_stack(
+        [
+            np.sin(6.0 * X[:, 0]) + np.tile(spread, 4) * rng.standard_normal(X.shape[0]),
+            X[:, 0] ** 2 + 0.05 * rng.standard_normal(X.shape[0]),
+            np.where(X[:, 0] > 0.5, 1.0, 0.0) + 0.01 * rng.standard_normal(X.shape[0]),
+        ]
+    )
+    params = {"kernel": SquaredExponential(1.0, 0.1) + WhiteNoise(0.1), "random_state": 0}
+    if not complete:
+        params.update(n_shared_models=2, shared_points=10)
+    joint = LocalGP(**params).fit(X, Y)
+    Xs = np.linspace(0.0, 1.0, 57)[:, None]
+    mean, std = joint.predict(Xs, return_std=True)
+    for j in range(Y.shape[1]):
+        alone = LocalGP(**params).fit(X, Y[:, j])
+        m, s = alone.predict(Xs, return_std=True)
+        np.testing.assert_allclose(mean[:, j], m, rtol=1e-6, atol=1e-8 * np.std(Y[:, j]))
+        np.testing.assert_allclose(std[:, j], s, rtol=1e-6)
+        assert joint.estimators_[j].em_status_ == alone.em_status_
