@@ -728,6 +728,9 @@ class GaussianProcess(ParamsMixin):
             likelihood evaluations fitting used. ``jitter_``: jitter that was needed (0 if none).
     """
 
+    #: Matrices shared by the steps of one EM (:meth:`_derive`); ``None`` outside it.
+    _shared: dict[Any, Any] | None = None
+
     def __init__(
         self,
         kernel: Kernel | None = None,
@@ -769,6 +772,7 @@ class GaussianProcess(ParamsMixin):
         *,
         alpha: NDArray[np.float64] | None = None,
         y: NDArray[np.float64] | None = None,
+        shared: dict[Any, Any] | None = None,
     ) -> GaussianProcess:
         """A GP prepared (as by :meth:`_prepare`) on this prepared GP's training inputs, with
         ``kernel`` and without the checks and grouping ``_prepare`` would repeat.
@@ -778,6 +782,9 @@ class GaussianProcess(ParamsMixin):
         *distinct* input (rows of ``self._data.X``; default this GP's), so it is constant
         within a replicate group by construction; ``y``: ``(n_samples,)`` targets (default
         this GP's). Only for GPs with ``normalize_y=False`` (the targets are used as given).
+        ``shared``: a dict the caller owns (and clears when done) in which the GPs derived
+        with it keep the signal matrix and factor of their latest ``theta`` and noise, so that
+        a step that changes neither reuses them (the EM with fixed hyperparameters).
         """
         if self.normalize_y:
             raise ValueError("_derive needs a GP with normalize_y=False")
@@ -800,6 +807,7 @@ class GaussianProcess(ParamsMixin):
         new._dist_cache = getattr(self, "_dist_cache", None)
         new.kernel_ = kernel.clone()
         new.n_lml_evaluations_ = 0
+        new._shared = shared
         return new
 
     def _prepare(self, X: ArrayLike, y: ArrayLike) -> GaussianProcess:
@@ -1018,10 +1026,32 @@ class GaussianProcess(ParamsMixin):
 
     def _solve(self) -> None:
         d = self._data
-        K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, self.kernel_.theta)
-        s = noise + self._alpha_u
-        K.flat[:: K.shape[0] + 1] += s / d.counts
-        self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
+        theta = self.kernel_.theta
+        shared: dict[Any, Any] | None = getattr(self, "_shared", None)
+        if shared is None:
+            K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, theta)
+            s = noise + self._alpha_u
+            K.flat[:: K.shape[0] + 1] += s / d.counts
+            self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
+        else:
+            # Steps of one EM on the same inputs (``_derive(shared=...)``): the signal matrix
+            # at an unchanged theta, and the factor at an unchanged noise too, are the ones
+            # computed before (the same arrays, so the same result).
+            key = tuple(type(leaf).__name__ for leaf in self.kernel_.leaves())
+            entry = shared.get(key)
+            if entry is None or not np.array_equal(entry["theta"], theta):
+                K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, theta)
+                entry = shared[key] = {"theta": theta, "K": K, "noise": noise}
+            noise = entry["noise"]
+            s = noise + self._alpha_u
+            factor = entry.get("factor")
+            if factor is not None and np.array_equal(factor[0], s):
+                self.L_, self.jitter_ = factor[1], factor[2]
+            else:
+                K = entry["K"].copy()
+                K.flat[:: K.shape[0] + 1] += s / d.counts
+                self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
+                entry["factor"] = (s, self.L_, self.jitter_)
         self._train_noise = s / d.counts + self.jitter_  # K_y - K on the (unique) inputs
         self.alpha_ = _potrs(self.L_, d.ybar, lower=1)[0]
         self._noise_level = noise
@@ -1029,7 +1059,7 @@ class GaussianProcess(ParamsMixin):
         lml = (  # Eq. (4) from this factorisation
             -0.5 * float(np.vdot(d.ybar, self.alpha_))
             - n_t * float(np.sum(np.log(self.L_.diagonal())))
-            - 0.5 * n_t * K.shape[0] * _LOG_2PI
+            - 0.5 * n_t * d.X.shape[0] * _LOG_2PI
         )
         if d.collapsed:
             lml += self._replicate_correction(s, d.counts, d.scatter)

@@ -158,25 +158,30 @@ def fixed_gp(k: Kernel, alpha: Any = 0.0, *, collapse_replicates: bool) -> Gauss
     )
 
 
-def _fit_z(make, zk: Kernel, U, z, var, prepare: bool = False, template=None) -> GaussianProcess:
+def _fit_z(
+    make, zk: Kernel, U, z, var, prepare: bool = False, template=None, shared=None
+) -> GaussianProcess:
     """The z-process on the distinct inputs ``U`` with known target noise ``var``.
 
     A single distinct input is given as two exact replicates of twice the noise (the same
     information), since a GP needs two samples; the replicates are collapsed exactly.
     ``template``: the z-process of an earlier EM iteration on the same inputs and noise, whose
-    grouping and distances are reused (only the targets change).
+    grouping and distances are reused (only the targets change); ``shared``: see
+    :meth:`GaussianProcess._derive`.
     """
     if U.shape[0] == 1:
         z = np.repeat(z, 2)
     if template is not None:
-        gp = template._derive(zk, y=z)
+        gp = template._derive(zk, y=z, shared=shared)
         if not prepare:
             gp._solve()
         return gp
     if U.shape[0] == 1:
         gp = make(zk, alpha=np.repeat(2.0 * var, 2))
-        return (gp._prepare if prepare else gp.fit)(np.repeat(U, 2, axis=0), z)
-    gp = make(zk, alpha=var)
+        U = np.repeat(U, 2, axis=0)
+    else:
+        gp = make(zk, alpha=var)
+    gp._shared = shared
     return (gp._prepare if prepare else gp.fit)(U, z)
 
 
@@ -395,6 +400,10 @@ class _EMRun:
         self.best: tuple[Any, ...] = (gps, [None] * len(gps), log_r0, self.sig, self.zk, 0)
         self.status, self.converged, self.n_iter = "max_em_iter reached", False, 0
         self.running = True
+        # With fixed hyperparameters every z-process of a data set has the same K_y and every
+        # refit of f the same signal matrix: kept here between iterations (cleared at the end).
+        self.z_shared: list[dict[Any, Any]] = [{} for _ in gps]
+        self.f_shared: list[dict[Any, Any]] = [{} for _ in gps]
 
     def noise_targets(self, make, n_samples, rng, noise_offset, prepare: bool) -> None:
         """Steps 2-3: the log-noise targets and the z-processes on them (``noise_gps``)."""
@@ -428,8 +437,19 @@ class _EMRun:
         else:
             self.off = float(noise_offset)
         self.noise_gps = [
-            _fit_z(make, self.zk, g[0], z - self.off, g[4], prepare=prepare, template=t)
-            for g, z, t in zip(self.groups, targets, self.z_templates, strict=True)
+            _fit_z(
+                make,
+                self.zk,
+                g[0],
+                z - self.off,
+                g[4],
+                prepare=prepare,
+                template=t,
+                shared=None if prepare else zs,
+            )
+            for g, z, t, zs in zip(
+                self.groups, targets, self.z_templates, self.z_shared, strict=True
+            )
         ]
         self.z_templates = self.noise_gps
 
@@ -441,8 +461,8 @@ class _EMRun:
             for zgp in self.noise_gps
         ]
         self.gps = [
-            b._derive(self.sig, alpha=np.exp(lr))
-            for b, lr in zip(self.base, self.new_log_r_u, strict=True)
+            b._derive(self.sig, alpha=np.exp(lr), shared=fs if solve else None)
+            for b, lr, fs in zip(self.base, self.new_log_r_u, self.f_shared, strict=True)
         ]
         if solve:
             for gp in self.gps:
@@ -468,6 +488,8 @@ class _EMRun:
             self.status, self.running = "objective decreased", False
 
     def result(self) -> EMResult:
+        for cache in [*self.z_shared, *self.f_shared]:
+            cache.clear()  # the fitted GPs keep no copies of intermediate matrices
         gps_b, noise_b, off_b, sig_b, zk_b, it_b = self.best
         return EMResult(
             gps_b,

@@ -344,3 +344,40 @@ def test_columns_fitted_in_lockstep_equal_separate_fits(complete):
         np.testing.assert_allclose(mean[:, j], m, rtol=1e-6, atol=1e-8 * np.std(Y[:, j]))
         np.testing.assert_allclose(std[:, j], s, rtol=1e-6)
         assert joint.estimators_[j].em_status_ == alone.em_status_
+
+
+def test_fixed_hyperparameter_ems_reuse_their_factors_exactly(monkeypatch):
+    """With fixed hyperparameters (the local models after the shared ones are learnt on a
+    subset) every z-process of a model has the same K_y and every refit the same signal matrix:
+    reused between EM iterations (fewer factorisations), with bit-identical results, and
+    dropped after the fit."""
+    from lgp_policy.gp import exact
+
+    X, y = demos(600)
+    X = X + np.random.default_rng(2).uniform(-0.01, 0.01, X.shape)  # distinct inputs
+    params = {"max_points": 60, "n_shared_models": 2, "shared_points": 20, "random_state": 0}
+    Xs = np.linspace(0.0, 10.0, 33)[:, None]
+    calls = []
+    factorise = exact.cholesky_with_jitter
+    monkeypatch.setattr(exact, "cholesky_with_jitter", lambda K: calls.append(1) or factorise(K))
+
+    def fit_and_predict():
+        calls.clear()
+        model = LocalGP(kernel(), **params).fit(X, y)
+        return model, *model.predict(Xs, return_std=True), len(calls)
+
+    reused, mean, std, n_reused = fit_and_predict()
+    for model in reused.models_:
+        for gp in (model.gp_, model.noise_gp_):
+            assert not getattr(gp, "_shared", None)  # emptied: no matrices kept
+    original = GaussianProcess._derive
+
+    def without_sharing(self, kernel, **kwargs):
+        kwargs["shared"] = None
+        return original(self, kernel, **kwargs)
+
+    monkeypatch.setattr(GaussianProcess, "_derive", without_sharing)
+    _, m2, s2, n_fresh = fit_and_predict()
+    np.testing.assert_array_equal(mean, m2)
+    np.testing.assert_array_equal(std, s2)
+    assert n_reused < n_fresh
