@@ -211,6 +211,8 @@ def fit_shared_hyperparameters(
         random_state=random_state,
         max_iter=max_iter,
     )
+    if stacked is not None:
+        stacked.count_evaluations()
     for gp in [*gps, *(apply_to or [])]:
         gp._set_theta(theta)
     return theta
@@ -269,6 +271,7 @@ def fit_shared_hyperparameters_many(
         for gps, b in zip(groups, bounds, strict=True)
     ]
     results = minimize_many(evaluate, starts, bounds, max_iter)
+    stacked.count_evaluations()
     thetas = []
     for gps, b, (theta, _) in zip(groups, bounds, results, strict=True):
         theta = np.clip(theta, b[:, 0], b[:, 1])
@@ -412,6 +415,7 @@ class _StackedLML:
         )
         self.twice_off_diagonal = 2.0 - np.eye(m)
         self.theta = np.array([gps[0].kernel_.theta for gps in owners])  # last theta per owner
+        self.n_evaluations = np.zeros(len(owners), dtype=np.int64)  # (count_evaluations)
 
     @classmethod
     def build(
@@ -492,14 +496,14 @@ class _StackedLML:
         sel = list(owners)
         for o, th in zip(sel, thetas, strict=True):
             self.theta[o] = th
-            for gp in self.owners[o]:
-                gp.n_lml_evaluations_ = getattr(gp, "n_lml_evaluations_", 0) + 1
+            self.n_evaluations[o] += 1
         if sel == list(range(len(self.owners))):
             rows = None
             owner_p = self.owner
         else:
             rows = np.concatenate([self.rows[o] for o in sel])
             owner_p = self.owner[rows]
+        ends = np.cumsum([self.rows[o].shape[0] for o in sel])  # each owner's rows, in order
         take = (lambda a: a) if rows is None else (lambda a: a[rows])
         theta_p = self.theta[owner_p]  # (P, n_theta)
         K: NDArray[np.float64] | None = None
@@ -561,16 +565,23 @@ class _StackedLML:
             for j in noise_idx:
                 grad[:, j] = dnoise * np.exp(theta_p[:, j])
         out: list[tuple[float, NDArray[np.float64]] | None] = []
-        for o in sel:
-            mine = owner_p == o
-            if np.any(failed[mine]):
+        any_failed = bool(np.any(failed))
+        for stop, start in zip(ends, [0, *ends[:-1]], strict=True):
+            if any_failed and np.any(failed[start:stop]):
                 out.append(None)
                 continue
-            lml = float(np.sum(value[mine]))
-            g = np.sum(grad[mine], axis=0)
+            lml = float(np.sum(value[start:stop]))
+            g = np.sum(grad[start:stop], axis=0)
             finite = math.isfinite(lml) and all(map(math.isfinite, g))
             out.append((lml, g) if finite else None)  # e.g. theta beyond bounds
         return out
+
+    def count_evaluations(self) -> None:
+        """Add the evaluations since the last call to the GPs' ``n_lml_evaluations_``."""
+        for gps, n in zip(self.owners, self.n_evaluations, strict=True):
+            for gp in gps:
+                gp.n_lml_evaluations_ = getattr(gp, "n_lml_evaluations_", 0) + int(n)
+        self.n_evaluations[:] = 0
 
 
 def _distinct_distances(
