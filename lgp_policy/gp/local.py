@@ -59,7 +59,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import logsumexp
 
 from lgp_policy.gp._base import NoisePredictionsMixin, ParamsMixin
 from lgp_policy.gp._threads import with_single_blas_thread
@@ -573,7 +572,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         lo, hi = self._boxes[:, 0][:, None, :], self._boxes[:, 1][:, None, :]  # (L, 1, d)
         gap = np.maximum(np.maximum(lo - X[None], X[None] - hi), 0.0) / self._spacing
         logrho = np.where(relevant, -0.5 * np.sum(gap**2, axis=2), -np.inf)
-        return np.exp(logrho - logsumexp(logrho, axis=0, keepdims=True))
+        return _normalized_exp(logrho)
 
     def _relevant(self, X: NDArray[np.float64], logw: NDArray[np.float64]) -> NDArray[np.bool_]:
         """(L, n) mask of the local models evaluated at each test point.
@@ -653,7 +652,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             v = 1.0 / prec
         elif self.combine == "rbcm":
             beta = 0.5 * (np.log(prior) - np.log(var))
-            rho_w = np.exp(logw - logsumexp(logw, axis=0, keepdims=True))
+            rho_w = _normalized_exp(logw)
             prior_var = np.sum(rho_w * prior, axis=0)
             prec = np.sum(beta / var, axis=0) + (1.0 - np.sum(beta, axis=0)) / prior_var
             prec = np.maximum(prec, 1.0 / prior_var)
@@ -661,7 +660,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             v = 1.0 / prec
         else:  # "nearest": moment-matched mixture of the n_neighbors models, weights w_l / v_l
             logpi = np.where(relevant[:, :, None], logw - np.log(var), -np.inf)
-            pi = np.exp(logpi - logsumexp(logpi, axis=0, keepdims=True))
+            pi = _normalized_exp(logpi)
             mean = np.sum(pi * mu, axis=0)
             v = np.maximum(np.sum(pi * (var + mu**2), axis=0) - mean**2, 1e-12)
         if self.combine_noisy:
@@ -706,6 +705,15 @@ def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
     for e, plan, result in zip(columns, plans, learned, strict=True):
         e.models_ = e._em_models(plan, result)
         e._prepare_prediction()
+
+
+def _normalized_exp(logw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``exp(logw)`` normalised to sum 1 over axis 0 (a softmax; ``-inf`` entries are 0), with
+    the largest entry of each column shifted to 0 first so that nothing overflows. (scipy's
+    ``logsumexp`` gave the same weights and cost a fifth of ``LocalGP.predict``.)"""
+    top = np.max(logw, axis=0, keepdims=True)
+    w = np.exp(logw - np.where(np.isfinite(top), top, 0.0))
+    return w / np.sum(w, axis=0, keepdims=True)
 
 
 def _latent_model(model) -> GaussianProcess:
