@@ -272,12 +272,10 @@ def fit_shared_hyperparameters_many(
     ]
     results = minimize_many(evaluate, starts, bounds, max_iter)
     stacked.count_evaluations()
-    thetas = []
-    for gps, b, (theta, _) in zip(groups, bounds, results, strict=True):
-        theta = np.clip(theta, b[:, 0], b[:, 1])
-        for gp in gps:
-            gp._set_theta(theta)
-        thetas.append(theta)
+    thetas = [
+        np.clip(theta, b[:, 0], b[:, 1]) for b, (theta, _) in zip(bounds, results, strict=True)
+    ]
+    stacked.set_theta(list(range(len(groups))), thetas)
     return thetas
 
 
@@ -383,6 +381,7 @@ class _StackedLML:
                     gp._training_sqdist() if kind == "SquaredExponential" else gp._training_dist()
                 )
             self.dist[kind] = D
+        self.problems, self.sizes = problems, sizes
         self.Y = np.zeros((P, m, R))
         self.counts = np.ones((P, m))
         self.alpha = np.zeros((P, m))
@@ -575,6 +574,69 @@ class _StackedLML:
             finite = math.isfinite(lml) and all(map(math.isfinite, g))
             out.append((lml, g) if finite else None)  # e.g. theta beyond bounds
         return out
+
+    def set_theta(self, owners: list[int], thetas: list[NDArray[np.float64]]) -> None:
+        """``gp._set_theta(theta)`` for every GP of ``owners`` (each at its owner's
+        ``theta``), with the kernels and factorisations of all of them in one pass and one
+        factorisation per problem (its members share it). An owner whose ``K_y`` needs jitter
+        is set up by ``_set_theta`` itself."""
+        sel = list(owners)
+        for o, th in zip(sel, thetas, strict=True):
+            self.theta[o] = th
+        rows = (
+            None
+            if sel == list(range(len(self.owners)))
+            else np.concatenate([self.rows[o] for o in sel])
+        )
+        take = (lambda a: a) if rows is None else (lambda a: a[rows])
+        owner_p = take(self.owner)
+        theta_p = self.theta[owner_p]
+        K: NDArray[np.float64] | None = None
+        noise = np.zeros(owner_p.shape[0])
+        for kind, j in self.parts:
+            if kind == "noise":
+                noise += np.exp(theta_p[:, j])
+                continue
+            Kl, _ = self._kernel(kind, j, theta_p[:, j : j + 2], rows)
+            K = Kl if K is None else K + Kl
+        assert K is not None
+        P, m = K.shape[0], K.shape[1]
+        s = noise[:, None] + take(self.alpha)
+        diag = K.reshape(P, -1)[:, :: m + 1]
+        diag += s * take(self.inv_counts) + take(self.pad)
+        problem_ids = np.arange(len(self.problems)) if rows is None else rows
+        redo: set[int] = set()
+        for p, q in enumerate(problem_ids):
+            o, members = self.problems[q]
+            if o in redo:
+                continue
+            L, info = _potrf(K[p], lower=1)
+            if info != 0:
+                redo.add(o)
+                continue
+            n = self.sizes[q]
+            L = np.array(L[:n, :n], order="F")  # the padding's factor is an identity block
+            noise_o = float(noise[p])
+            for gp in members:
+                gp.kernel_.theta = self.theta[o]
+                d = gp._data
+                s_gp = noise_o + gp._alpha_u
+                gp.L_, gp.jitter_ = L, 0.0
+                gp._train_noise = s_gp / d.counts
+                gp.alpha_ = _potrs(L, d.ybar, lower=1)[0]
+                gp._noise_level = noise_o
+                n_t = d.ybar.shape[1]
+                lml = (
+                    -0.5 * float(np.vdot(d.ybar, gp.alpha_))
+                    - n_t * float(np.sum(np.log(L.diagonal())))
+                    - 0.5 * n_t * n * _LOG_2PI
+                )
+                if d.collapsed:
+                    lml += gp._replicate_correction(s_gp, d.counts, d.scatter)
+                gp.log_marginal_likelihood_value_ = float(lml)
+        for o in redo:
+            for gp in self.owners[o]:
+                gp._set_theta(self.theta[o])
 
     def count_evaluations(self) -> None:
         """Add the evaluations since the last call to the GPs' ``n_lml_evaluations_``."""

@@ -396,3 +396,35 @@ def test_stacked_owners_evaluate_each_owners_sum():
             parts = [gp._lml(thetas[o], eval_gradient=True) for gp in owners[o]]
             assert res[0] == pytest.approx(sum(p[0] for p in parts), rel=1e-11)
             np.testing.assert_allclose(res[1], np.sum([p[1] for p in parts], axis=0), rtol=1e-9)
+
+
+def test_stacked_set_theta_equals_each_gps_own():
+    """The batched set-up after a lockstep search (one factorisation per problem, shared by
+    equal windows) leaves every GP as its own _set_theta would, to rounding."""
+    from lgp_policy.gp.exact import fit_shared_hyperparameters_many
+
+    rng = np.random.default_rng(6)
+    grid = np.linspace(0.0, 1.0, 100)
+    groups = []
+    for o in range(3):
+        gps = []
+        for lo, hi in ((0, 30), (30, 60), (60, 70)):
+            X = np.tile(grid[lo:hi], 3)[:, None]
+            y = np.sin((3 + o) * X[:, 0]) + 0.1 * rng.standard_normal(X.shape[0])
+            gps.append(GaussianProcess(_kernel(), optimizer=None, normalize_y=False)._prepare(X, y))
+        groups.append(gps)
+    thetas = fit_shared_hyperparameters_many(groups)
+    Xs = np.linspace(0.0, 1.0, 9)[:, None]
+    for gps, theta in zip(groups, thetas, strict=True):
+        for gp in gps:
+            ref = GaussianProcess(_kernel(), optimizer=None, normalize_y=False)._prepare(
+                gp.X_train_, gp.y_train_
+            )
+            ref._set_theta(theta)
+            np.testing.assert_allclose(gp.kernel_.theta, theta)
+            np.testing.assert_allclose(gp.L_, ref.L_, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(gp.alpha_, ref.alpha_, rtol=1e-9, atol=1e-10)
+            assert gp.log_marginal_likelihood_value_ == pytest.approx(
+                ref.log_marginal_likelihood_value_, rel=1e-11
+            )
+            np.testing.assert_allclose(gp.predict(Xs), ref.predict(Xs), rtol=1e-9, atol=1e-10)
