@@ -25,17 +25,26 @@ class ConvergenceWarning(UserWarning):
     """An iterative fit stopped without meeting its tolerance (like scikit-learn's)."""
 
 
+#: Constructor parameter names per class (``ParamsMixin._param_names``).
+_PARAM_NAMES: dict[type, list[str]] = {}
+
+
 class ParamsMixin:
     """``get_params`` / ``set_params`` from the ``__init__`` signature (scikit-learn's rules)."""
 
     @classmethod
     def _param_names(cls) -> list[str]:
-        sig = inspect.signature(cls.__init__)
-        return sorted(
-            p.name
-            for p in sig.parameters.values()
-            if p.name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
-        )
+        # Read once per class: inspecting the signature cost more than the algebra of the
+        # small GPs an EM builds by the hundred.
+        names = _PARAM_NAMES.get(cls)
+        if names is None:
+            sig = inspect.signature(cls.__init__)
+            names = _PARAM_NAMES[cls] = sorted(
+                p.name
+                for p in sig.parameters.values()
+                if p.name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+            )
+        return list(names)
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """Constructor parameters; with ``deep``, also ``name__sub`` of nested estimators."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -24,6 +25,7 @@ import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from lgp_policy.gp._base import ParamsMixin
+from lgp_policy.gp._lbfgsb import minimize_many
 from lgp_policy.gp._threads import with_single_blas_thread
 from lgp_policy.gp._validation import check_random_state, check_X, check_X_y
 from lgp_policy.gp.kernels import Exponential, Kernel, SquaredExponential, WhiteNoise
@@ -34,6 +36,7 @@ __all__ = [
     "NotPositiveDefiniteError",
     "default_kernel",
     "fit_shared_hyperparameters",
+    "fit_shared_hyperparameters_many",
     "maximize_lml",
 ]
 
@@ -103,11 +106,11 @@ def _minimize(obj, theta0, bounds, optimizer: Optimizer, max_iter: int):
     if callable(optimizer):
         theta, val = optimizer(obj, theta0, bounds)
         return np.asarray(theta, dtype=np.float64), float(val)
-    if optimizer == "L-BFGS-B":
-        res = scipy.optimize.minimize(
-            obj, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iter}
+    if optimizer == "L-BFGS-B":  # scipy's routine and defaults, without scipy's driver
+        ((theta, value),) = minimize_many(
+            lambda _, thetas: [obj(thetas[0])], [theta0], [bounds], max_iter
         )
-        return res.x, float(res.fun)
+        return theta, value
     if optimizer != "CG":
         raise ValueError(
             f"optimizer must be 'L-BFGS-B', 'CG', None or a callable, got {optimizer!r}"
@@ -173,6 +176,7 @@ def fit_shared_hyperparameters(
     random_state: int | np.random.Generator | None = None,
     max_iter: int = 200,
     apply_to: list[GaussianProcess] | None = None,
+    cache: dict[Any, Any] | None = None,
 ) -> NDArray[np.float64]:
     """Learn one ``theta`` for several fitted GPs by maximising the sum of their Eq. (4).
 
@@ -181,21 +185,22 @@ def fit_shared_hyperparameters(
     structure. The sum of
     independent data sets' log marginal likelihoods is the likelihood of the product-of-experts
     model of local GPs (Deisenroth & Ng 2015). The result is applied to ``gps`` and to
-    ``apply_to`` (default: none besides ``gps``) without further optimisation.
+    ``apply_to`` (default: none besides ``gps``) without further optimisation. ``cache``: a
+    dict owned by a caller that learns repeatedly on the same inputs (the EM), in which
+    distances are kept between calls (see :meth:`_StackedLML.build_many`).
 
     Returns:
         the shared ``theta`` (log space).
     """
     kernel = gps[0].kernel_
-    stacked = _StackedLML.build(gps)
+    stacked = _StackedLML.build(gps, cache)
 
     def total(theta):
         if stacked is not None:
             out = stacked(theta)
             if out is not None:
                 return out
-        values, grads = zip(*(gp._lml(theta, eval_gradient=True) for gp in gps), strict=True)
-        return float(np.sum(values)), np.sum(grads, axis=0)
+        return _lml_sum(gps, theta)
 
     theta = maximize_lml(
         total,
@@ -206,168 +211,489 @@ def fit_shared_hyperparameters(
         random_state=random_state,
         max_iter=max_iter,
     )
+    if stacked is not None:
+        stacked.count_evaluations()
     for gp in [*gps, *(apply_to or [])]:
         gp._set_theta(theta)
     return theta
 
 
-class _StackedLML:
-    """The sum over several fitted GPs of Eq. (4) and its gradient, in one batched pass.
+def _lml_sum(gps: list[GaussianProcess], theta: NDArray[np.float64]):
+    values, grads = zip(*(gp._lml(theta, eval_gradient=True) for gp in gps), strict=True)
+    return float(np.sum(values)), np.sum(grads, axis=0)
 
-    The GPs' (unique-input) problems are stacked into ``(B, m, m)`` arrays, ``m`` the largest;
+
+def fit_shared_hyperparameters_many(
+    groups: list[list[GaussianProcess]],
+    *,
+    optimizer: Optimizer = "L-BFGS-B",
+    n_restarts: int = 0,
+    random_state: int | np.random.Generator | None = None,
+    max_iter: int = 200,
+    cache: dict[Any, Any] | None = None,
+) -> list[NDArray[np.float64]]:
+    """:func:`fit_shared_hyperparameters` for independent groups (one ``theta`` each): the
+    outputs of one frame, each with its local models.
+
+    With L-BFGS-B and no restarts the groups' searches run in lockstep
+    (:func:`lgp_policy.gp._lbfgsb.minimize_many`) and the likelihoods they ask for in one
+    round are evaluated in one batched pass (:class:`_StackedLML`); each group takes exactly
+    the steps it would take alone (same search, same values to rounding). Otherwise the
+    groups are learnt one after another (restarts draw from ``random_state`` in group order).
+    """
+    stacked = None
+    if optimizer == "L-BFGS-B" and n_restarts == 0 and len(groups) > 1:
+        stacked = _StackedLML.build_many(groups, cache)
+    if stacked is None:
+        return [
+            fit_shared_hyperparameters(
+                gps,
+                optimizer=optimizer,
+                n_restarts=n_restarts,
+                random_state=random_state,
+                max_iter=max_iter,
+                cache=cache,
+            )
+            for gps in groups
+        ]
+
+    def evaluate(indices, thetas):
+        out = []
+        for i, theta, res in zip(indices, thetas, stacked.evaluate(indices, thetas), strict=True):
+            value, grad = _lml_sum(groups[i], theta) if res is None else res
+            # as maximize_lml: minimise -LML, a failed evaluation is a wall
+            out.append((1e25, np.zeros_like(theta)) if not np.isfinite(value) else (-value, -grad))
+        return out
+
+    bounds = [np.asarray(gps[0].kernel_.bounds, dtype=np.float64) for gps in groups]
+    starts = [
+        np.clip(gps[0].kernel_.theta, b[:, 0], b[:, 1])
+        for gps, b in zip(groups, bounds, strict=True)
+    ]
+    results = minimize_many(evaluate, starts, bounds, max_iter)
+    stacked.count_evaluations()
+    thetas = [
+        np.clip(theta, b[:, 0], b[:, 1]) for b, (theta, _) in zip(bounds, results, strict=True)
+    ]
+    stacked.set_theta(list(range(len(groups))), thetas)
+    return thetas
+
+
+class _StackedLML:
+    """Eq. (4) and its gradient for several groups of GPs ("owners", each the local models of
+    one output with one shared ``theta``), each group's sum in one batched pass for all.
+
+    The GPs' (unique-input) problems are stacked into ``(P, m, m)`` arrays, ``m`` the largest;
     a smaller problem is padded with independent unit-variance dummy inputs with target 0
     (identity rows and columns of ``K_y``: their distances to everything are ``PAD_DISTANCE``,
     so every kernel term and its gradient is exactly 0 there), which add exactly 0 to the value
     and the gradient. The kernel matrices, their gradients and the contractions are then one
-    numpy operation each for all ``B`` problems, and only the factorisation and inversion run
-    per problem (LAPACK, measured faster than numpy's stacked routines at these sizes): for the
-    small local models of :class:`~lgp_policy.gp.local.LocalGP` the per-GP Python work of
+    numpy operation each for all ``P`` problems (each with its owner's ``theta``), and only the
+    factorisation and inversion run per problem (LAPACK, measured faster than numpy's stacked
+    routines at these sizes): for the small local models of
+    :class:`~lgp_policy.gp.local.LocalGP` the per-GP Python work of
     :meth:`GaussianProcess._lml` cost several times the algebra. Same value and gradient as the
-    sum of the GPs' ``_lml`` to rounding (tested); where any ``K_y`` needs jitter ``__call__``
-    returns ``None`` and the caller falls back to that sum.
+    sum of the GPs' ``_lml`` to rounding (tested); where an owner's ``K_y`` needs jitter its
+    result is ``None`` and the caller falls back to that sum.
+
+    Repeated work is done once:
+
+    * GPs of one owner whose ``K_y`` is the same matrix for every ``theta`` (equal training
+      distances, replicate counts and ``alpha``: the local models of one time grid in the
+      homoscedastic step and in the z-process of the EM) are one problem whose targets are the
+      members' targets side by side (a multi-output GP): one factorisation instead of one per
+      model;
+    * where a problem's distances take few distinct values (a regular grid), the kernel is
+      evaluated on those values and gathered.
+
+    Both compare distances to ``2^-40`` relative (those of two equally spaced windows differ in
+    their last bits), so the result equals the separate sum to rounding, not bit for bit.
 
     Gradient: with ``W`` the lower triangle of ``K_y^-1`` and ``a = K_y^-1 y``,
     ``dLML/dtheta_j = (a^T G_j a - n_t tr(K_y^-1 G_j)) / 2`` and, ``G_j`` symmetric,
-    ``tr(K_y^-1 G_j) = 2 sum(W * G_j) - sum(diag(W) * diag(G_j))``.
+    ``tr(K_y^-1 G_j) = 2 sum(W * G_j) - sum(diag(W) * diag(G_j))``; ``n_t`` is the number of
+    target columns a problem's ``K_y`` serves (members times targets).
     """
 
     #: Distance of a padding input to every input (finite: its products with 0 stay 0).
     PAD_DISTANCE = 1e120
 
-    def __init__(self, gps: list[GaussianProcess]) -> None:
-        self.gps = gps
+    #: Evaluate the kernel on the distinct distances when there are at most this fraction of
+    #: the stacked entries.
+    DISTINCT_FRACTION = 0.125
+
+    def __init__(self, owners: list[list[GaussianProcess]], cache: dict[Any, Any]) -> None:
+        self.owners = owners
+        first = owners[0][0]
         self.parts: list[tuple[str, int]] = []
         start = 0
-        for leaf in gps[0].kernel_.leaves():
+        for leaf in first.kernel_.leaves():
             self.parts.append(("noise" if leaf.is_noise else type(leaf).__name__, start))
             start += leaf.n_dims
-        sizes = [gp._data.X.shape[0] for gp in gps]
-        B, m = len(gps), max(sizes)
-        n_t = gps[0]._data.ybar.shape[1]
-        valid = np.zeros((B, m), dtype=bool)
-        for b, n in enumerate(sizes):
-            valid[b, :n] = True
-        self.dist: dict[str, NDArray[np.float64]] = {}
-        for kind, _ in self.parts:
-            if kind == "noise" or kind in self.dist:
-                continue
-            D = np.full(
-                (B, m, m),
-                self.PAD_DISTANCE**2 if kind == "SquaredExponential" else self.PAD_DISTANCE,
-            )
-            for b, (gp, n) in enumerate(zip(gps, sizes, strict=True)):
-                if kind == "SquaredExponential":
-                    D[b, :n, :n] = gp._training_sqdist()
+        self.n_theta = start
+        kinds = sorted({kind for kind, _ in self.parts if kind != "noise"})
+        n_t = first._data.ybar.shape[1]
+        # Problems: GPs of one owner whose K_y coincides for every theta share one matrix.
+        problems: list[tuple[int, list[GaussianProcess]]] = []
+        for o, gps in enumerate(owners):
+            mine: list[list[GaussianProcess]] = []
+            for gp in gps:
+                for members in mine:
+                    if _same_covariance(members[0], gp, kinds, cache):
+                        members.append(gp)
+                        break
                 else:
-                    D[b, :n, :n] = gp._training_dist()
+                    mine.append([gp])
+            problems += [(o, members) for members in mine]
+        sizes = [members[0]._data.X.shape[0] for _, members in problems]
+        P, m = len(problems), max(sizes)
+        R = n_t * max(len(members) for _, members in problems)
+        self.owner = np.array([o for o, _ in problems])
+        self.rows = [np.flatnonzero(self.owner == o) for o in range(len(owners))]
+        valid = np.zeros((P, m), dtype=bool)
+        for p, n in enumerate(sizes):
+            valid[p, :n] = True
+        # Per kernel kind: the stacked distances (P, m, m), or the distinct distances of every
+        # problem side by side with each entry's index into them (and the owner of each value).
+        self.dist: dict[str, NDArray[np.float64]] = {}
+        self.distinct: dict[str, tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp]]]
+        self.distinct = {}
+        for kind in kinds:
+            pad = self.PAD_DISTANCE**2 if kind == "SquaredExponential" else self.PAD_DISTANCE
+            per = [_distinct_distances(members[0], kind, cache) for _, members in problems]
+            n_values = sum(v.size for v, _ in per) + 1
+            if n_values <= self.DISTINCT_FRACTION * P * m * m:
+                values = np.concatenate([*(v for v, _ in per), [pad]])
+                value_owner = np.concatenate(
+                    [*(np.full(v.size, o) for (v, _), o in zip(per, self.owner, strict=True)), [0]]
+                )
+                index = np.full((P, m, m), n_values - 1, dtype=np.intp)
+                offset = 0
+                for p, ((v, inv), n) in enumerate(zip(per, sizes, strict=True)):
+                    index[p, :n, :n] = inv + offset
+                    offset += v.size
+                self.distinct[kind] = (values, value_owner, index)
+                continue
+            D = np.full((P, m, m), pad)
+            for p, ((_, members), n) in enumerate(zip(problems, sizes, strict=True)):
+                gp = members[0]
+                D[p, :n, :n] = (
+                    gp._training_sqdist() if kind == "SquaredExponential" else gp._training_dist()
+                )
             self.dist[kind] = D
-        self.Y = np.zeros((B, m, n_t))
-        self.counts = np.ones((B, m))
-        self.alpha = np.zeros((B, m))
-        self.scatter = np.zeros((B, m))
-        for b, (gp, n) in enumerate(zip(gps, sizes, strict=True)):
-            d = gp._data
-            self.Y[b, :n] = d.ybar
-            self.counts[b, :n] = d.counts
-            self.alpha[b, :n] = gp._alpha_u
-            self.scatter[b, :n] = np.sum(d.scatter, axis=1)
-        self.is_valid = valid
+        self.problems, self.sizes = problems, sizes
+        self.Y = np.zeros((P, m, R))
+        self.counts = np.ones((P, m))
+        self.alpha = np.zeros((P, m))
+        self.scatter = np.zeros((P, m))  # summed over members and targets
+        self.n_cols = np.zeros(P)  # target columns per problem
+        n_inputs = np.zeros(P)  # training inputs (with replicates) per problem, all members
+        for p, ((_, members), n) in enumerate(zip(problems, sizes, strict=True)):
+            self.counts[p, :n] = members[0]._data.counts
+            self.alpha[p, :n] = members[0]._alpha_u
+            for k, gp in enumerate(members):
+                d = gp._data
+                self.Y[p, :n, k * n_t : (k + 1) * n_t] = d.ybar
+                self.scatter[p, :n] += np.sum(d.scatter, axis=1)
+            self.n_cols[p] = len(members) * n_t
+            n_inputs[p] = len(members) * n
         self.valid = valid.astype(np.float64)
+        self.weight = self.valid * self.n_cols[:, None]  # target columns at each input
         self.pad = 1.0 - self.valid  # unit diagonal of the padding
         self.n_t = n_t
-        self.n_total = int(sum(sizes))
-        self.diag = (slice(None), np.arange(m), np.arange(m))
-        self.replicated = bool(np.any(self.counts > 1.0))
+        # Constant parts of Eq. (4) and of the replicate correction (``_replicate_correction``):
+        # per group of c replicates, -(c-1)/2 log(2 pi s) - 1/2 log c - scatter / (2 s) per
+        # target column.
+        c = self.counts
+        self.replicated = bool(np.any(c > 1.0))
+        self.inv_counts = self.valid / c
+        self.rep_mask = valid & (c > 1.0)
+        self.weight_c1 = self.weight * (c - 1.0)
+        self.lml_const = -0.5 * n_t * n_inputs * _LOG_2PI - 0.5 * np.sum(
+            self.weight * ((c - 1.0) * _LOG_2PI + np.log(c)), axis=1
+        )
+        self.twice_off_diagonal = 2.0 - np.eye(m)
+        self.theta = np.array([gps[0].kernel_.theta for gps in owners])  # last theta per owner
+        self.n_evaluations = np.zeros(len(owners), dtype=np.int64)  # (count_evaluations)
 
     @classmethod
-    def build(cls, gps: list[GaussianProcess]) -> _StackedLML | None:
-        """A stacked evaluator, or ``None`` where the kernels are not all of the supported
-        form (isotropic squared-exponential / exponential terms plus white noise)."""
+    def build(
+        cls, gps: list[GaussianProcess], cache: dict[Any, Any] | None = None
+    ) -> _StackedLML | None:
+        """A stacked evaluator of the sum over ``gps`` (one owner), or ``None`` where the
+        kernels are not all of the supported form (isotropic squared-exponential /
+        exponential terms plus white noise). ``cache``: see :meth:`build_many`."""
         if len(gps) < 2:
             return None
-        kinds = [type(leaf) for leaf in gps[0].kernel_.leaves()]
-        for leaf in gps[0].kernel_.leaves():
+        return cls.build_many([gps], cache)
+
+    @classmethod
+    def build_many(
+        cls, owners: list[list[GaussianProcess]], cache: dict[Any, Any] | None = None
+    ) -> _StackedLML | None:
+        """A stacked evaluator for several owners (lists of GPs), or ``None`` (see
+        :meth:`build`). ``cache``: a dict kept by the caller between builds on the same input
+        arrays (the iterations of the EM): distinct distances and which inputs have equal
+        distances are stored in it, keyed by the identity of the GPs' input arrays (which it
+        keeps alive)."""
+        first = owners[0][0]
+        kinds = [type(leaf) for leaf in first.kernel_.leaves()]
+        for leaf in first.kernel_.leaves():
             if leaf.is_noise:
                 if type(leaf) is not WhiteNoise:
                     return None
             elif type(leaf) not in _CACHED_KERNELS or leaf.n_dims != 2:
                 return None
-        n_t = gps[0]._data.ybar.shape[1]
-        for gp in gps:
-            if [type(leaf) for leaf in gp.kernel_.leaves()] != kinds:
+        n_t = first._data.ybar.shape[1]
+        for gps in owners:
+            for gp in gps:
+                if [type(leaf) for leaf in gp.kernel_.leaves()] != kinds:
+                    return None
+                if gp._data.ybar.shape[1] != n_t:
+                    return None
+            if np.any(np.abs(gps[0].kernel_.bounds) > 50.0):  # keep PAD_DISTANCE products finite
                 return None
-            if gp._data.ybar.shape[1] != n_t:
-                return None
-        if np.any(np.abs(gps[0].kernel_.bounds) > 50.0):  # keep PAD_DISTANCE products finite
-            return None
-        return cls(gps)
+        return cls(owners, {} if cache is None else cache)
 
     def __call__(self, theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]] | None:
-        theta = np.asarray(theta, dtype=np.float64)
-        for gp in self.gps:
-            gp.n_lml_evaluations_ = getattr(gp, "n_lml_evaluations_", 0) + 1
+        """Value and gradient of the first owner's sum at ``theta``."""
+        return self.evaluate([0], [theta])[0]
+
+    def _kernel(self, kind: str, j: int, theta_p, rows):
+        """``(K, dK/dlog l)`` of one stacked isotropic term with each problem's ``theta``
+        ``(P, 2)`` (``dK/dlog variance`` is ``K``)."""
+        if kind in self.distinct:
+            values, value_owner, index = self.distinct[kind]
+            t = self.theta[value_owner, j : j + 2]  # every owner's latest theta
+            if kind == "SquaredExponential":
+                d = values * np.exp(-2.0 * t[:, 1])
+                Kv = np.multiply(d, -0.5)
+            else:
+                d = values * np.exp(-t[:, 1])
+                Kv = np.negative(d)
+            np.exp(Kv, out=Kv)
+            Kv *= np.exp(t[:, 0])
+            d *= Kv
+            idx = index if rows is None else index[rows]
+            return Kv[idx], d[idx]
+        D = self.dist[kind] if rows is None else self.dist[kind][rows]
+        if kind == "SquaredExponential":
+            d = D * np.exp(-2.0 * theta_p[:, 1])[:, None, None]
+            K = np.multiply(d, -0.5)
+        else:
+            d = D * np.exp(-theta_p[:, 1])[:, None, None]
+            K = np.negative(d)
+        np.exp(K, out=K)
+        K *= np.exp(theta_p[:, 0])[:, None, None]
+        d *= K
+        return K, d
+
+    def evaluate(
+        self, owners: list[int], thetas: list[NDArray[np.float64]]
+    ) -> list[tuple[float, NDArray[np.float64]] | None]:
+        """``[(value, gradient) or None, ...]`` of the sums of ``owners`` at ``thetas``."""
+        sel = list(owners)
+        for o, th in zip(sel, thetas, strict=True):
+            self.theta[o] = th
+            self.n_evaluations[o] += 1
+        if sel == list(range(len(self.owners))):
+            rows = None
+            owner_p = self.owner
+        else:
+            rows = np.concatenate([self.rows[o] for o in sel])
+            owner_p = self.owner[rows]
+        ends = np.cumsum([self.rows[o].shape[0] for o in sel])  # each owner's rows, in order
+        take = (lambda a: a) if rows is None else (lambda a: a[rows])
+        theta_p = self.theta[owner_p]  # (P, n_theta)
         K: NDArray[np.float64] | None = None
         grads: list[tuple[int, NDArray[np.float64]]] = []
-        noise, noise_idx = 0.0, []
+        noise = np.zeros(owner_p.shape[0])
+        noise_idx: list[int] = []
         for kind, j in self.parts:
             if kind == "noise":
-                noise += float(np.exp(theta[j]))
+                noise += np.exp(theta_p[:, j])
                 noise_idx.append(j)
                 continue
-            if kind == "SquaredExponential":
-                Kl, G = SquaredExponential.from_sqdist(theta[j : j + 2], self.dist[kind], True)
-            else:
-                Kl, G = Exponential.from_dist(theta[j : j + 2], self.dist[kind], True)
-            K = Kl.copy() if K is None else K + Kl  # (G[0] is Kl itself)
-            grads += [(j, G[0]), (j + 1, G[1])]
+            Kl, G1 = self._kernel(kind, j, theta_p[:, j : j + 2], rows)
+            K = Kl.copy() if K is None else K + Kl
+            grads += [(j, Kl), (j + 1, G1)]
         if K is None:  # pragma: no cover - build() requires a signal term
-            return None
-        s = noise + self.alpha  # one observation's noise variance at each unique input
-        c = self.counts
-        K[self.diag] += self.valid * s / c + self.pad
-        # In place, no copies: K[b].T is K[b] (symmetric) in Fortran order; its factor and then
+            return [None] * len(sel)
+        P, m = K.shape[0], K.shape[1]
+        s = noise[:, None] + take(self.alpha)  # one observation's noise variance per input
+        inv_counts = take(self.inv_counts)
+        diag = K.reshape(P, -1)[:, :: m + 1]  # a view of the diagonals
+        diag += s * inv_counts + take(self.pad)
+        # In place, no copies: K[p].T is K[p] (symmetric) in Fortran order; its factor and then
         # the inverse's triangle overwrite it, so W (= K, read in C order) holds one triangle
         # of K_y^-1 and zeros in the other (``clean``).
-        a = np.empty_like(self.Y)
-        logdet = 0.0
-        for b in range(K.shape[0]):
-            L, info = _potrf(K[b].T, lower=1, overwrite_a=1, clean=1)
-            if info != 0:
-                return None
-            logdet += float(np.sum(np.log(L.diagonal())))
-            a[b] = _potrs(L, self.Y[b], lower=1)[0]
-            _, info = _potri(L, lower=1, overwrite_c=1)
-            if info != 0:  # pragma: no cover - L comes from a successful factorisation
-                return None
+        failed = np.zeros(P, dtype=bool)
+        factors = []
+        for p in range(P):
+            L, info = _potrf(K[p].T, lower=1, overwrite_a=1, clean=1)
+            if info != 0:  # this owner falls back; an identity keeps the rest finite
+                failed[p] = True
+                K[p] = np.eye(m)
+                L = K[p].T
+            factors.append(L)
+        logdet = np.sum(np.log(diag), axis=1)  # the factors' diagonals
+        Y = take(self.Y)
+        a = np.empty_like(Y)
+        for p, L in enumerate(factors):
+            a[p] = _potrs(L, Y[p], lower=1)[0]
+            _potri(L, lower=1, overwrite_c=1)
         W = K
-        n_t = self.n_t
-        lml = -0.5 * float(np.vdot(self.Y, a)) - n_t * logdet - 0.5 * n_t * self.n_total * _LOG_2PI
-        s = np.where(self.is_valid & (s > 0), s, 1.0)  # in the replicate terms (0 where c = 1)
+        cols = take(self.n_cols)
+        value = -0.5 * np.sum(Y * a, axis=(1, 2)) - cols * logdet + take(self.lml_const)
         if self.replicated:
-            per_group = (
-                -0.5 * n_t * (c - 1.0) * (_LOG_2PI + np.log(s))
-                - 0.5 * n_t * np.log(c)
-                - 0.5 * self.scatter / s
-            )
-            lml += float(np.vdot(self.valid, per_group))
-        W_diag = W[self.diag]
-        grad = np.zeros_like(theta)
+            s_rep = np.where(take(self.rep_mask) & (s > 0), s, 1.0)  # (c - 1 = 0 where s = 0)
+            inv_s = 1.0 / s_rep
+            scatter, weight_c1 = take(self.scatter), take(self.weight_c1)
+            value -= 0.5 * np.sum(weight_c1 * np.log(s_rep) + scatter * inv_s, axis=1)
+        W2 = (W * self.twice_off_diagonal).reshape(P, 1, -1)  # tr(K_y^-1 G) = sum(W2 * G)
+        grad = np.zeros((P, self.n_theta))
         for j, G in grads:
-            quad = float(np.vdot(a, G @ a))
-            trace = 2.0 * float(np.vdot(W, G)) - float(np.vdot(W_diag, G[self.diag]))
-            grad[j] = 0.5 * (quad - n_t * trace)
+            quad = np.sum(a * (G @ a), axis=(1, 2))
+            trace = np.matmul(W2, G.reshape(P, -1, 1)).reshape(P)
+            grad[:, j] = 0.5 * (quad - cols * trace)
         if noise_idx:
-            A_diag = np.sum(a**2, axis=2) - n_t * W_diag  # diag(dLML/dK_y) * 2
-            dnoise = 0.5 * float(np.vdot(self.valid, A_diag / c))
+            A_diag = np.sum(a * a, axis=2) - cols[:, None] * diag  # 2 diag(dLML/dK_y)
+            dnoise = 0.5 * np.sum(inv_counts * A_diag, axis=1)
             if self.replicated:
-                dnoise += float(
-                    np.vdot(self.valid, -0.5 * n_t * (c - 1.0) / s + 0.5 * self.scatter / s**2)
-                )
+                dnoise += 0.5 * np.sum(scatter * inv_s * inv_s - weight_c1 * inv_s, axis=1)
             for j in noise_idx:
-                grad[j] = dnoise * float(np.exp(theta[j]))
-        if not (np.isfinite(lml) and np.all(np.isfinite(grad))):  # e.g. theta beyond bounds
-            return None
-        return lml, grad
+                grad[:, j] = dnoise * np.exp(theta_p[:, j])
+        out: list[tuple[float, NDArray[np.float64]] | None] = []
+        any_failed = bool(np.any(failed))
+        for stop, start in zip(ends, [0, *ends[:-1]], strict=True):
+            if any_failed and np.any(failed[start:stop]):
+                out.append(None)
+                continue
+            lml = float(np.sum(value[start:stop]))
+            g = np.sum(grad[start:stop], axis=0)
+            finite = math.isfinite(lml) and all(map(math.isfinite, g))
+            out.append((lml, g) if finite else None)  # e.g. theta beyond bounds
+        return out
+
+    def set_theta(self, owners: list[int], thetas: list[NDArray[np.float64]]) -> None:
+        """``gp._set_theta(theta)`` for every GP of ``owners`` (each at its owner's
+        ``theta``), with the kernels and factorisations of all of them in one pass and one
+        factorisation per problem (its members share it). An owner whose ``K_y`` needs jitter
+        is set up by ``_set_theta`` itself."""
+        sel = list(owners)
+        for o, th in zip(sel, thetas, strict=True):
+            self.theta[o] = th
+        rows = (
+            None
+            if sel == list(range(len(self.owners)))
+            else np.concatenate([self.rows[o] for o in sel])
+        )
+        take = (lambda a: a) if rows is None else (lambda a: a[rows])
+        owner_p = take(self.owner)
+        theta_p = self.theta[owner_p]
+        K: NDArray[np.float64] | None = None
+        noise = np.zeros(owner_p.shape[0])
+        for kind, j in self.parts:
+            if kind == "noise":
+                noise += np.exp(theta_p[:, j])
+                continue
+            Kl, _ = self._kernel(kind, j, theta_p[:, j : j + 2], rows)
+            K = Kl if K is None else K + Kl
+        assert K is not None
+        P, m = K.shape[0], K.shape[1]
+        s = noise[:, None] + take(self.alpha)
+        diag = K.reshape(P, -1)[:, :: m + 1]
+        diag += s * take(self.inv_counts) + take(self.pad)
+        problem_ids = np.arange(len(self.problems)) if rows is None else rows
+        redo: set[int] = set()
+        for p, q in enumerate(problem_ids):
+            o, members = self.problems[q]
+            if o in redo:
+                continue
+            L, info = _potrf(K[p], lower=1)
+            if info != 0:
+                redo.add(o)
+                continue
+            n = self.sizes[q]
+            L = np.array(L[:n, :n], order="F")  # the padding's factor is an identity block
+            noise_o = float(noise[p])
+            for gp in members:
+                gp.kernel_.theta = self.theta[o]
+                d = gp._data
+                s_gp = noise_o + gp._alpha_u
+                gp.L_, gp.jitter_ = L, 0.0
+                gp._train_noise = s_gp / d.counts
+                gp.alpha_ = _potrs(L, d.ybar, lower=1)[0]
+                gp._noise_level = noise_o
+                n_t = d.ybar.shape[1]
+                lml = (
+                    -0.5 * float(np.vdot(d.ybar, gp.alpha_))
+                    - n_t * float(np.sum(np.log(L.diagonal())))
+                    - 0.5 * n_t * n * _LOG_2PI
+                )
+                if d.collapsed:
+                    lml += gp._replicate_correction(s_gp, d.counts, d.scatter)
+                gp.log_marginal_likelihood_value_ = float(lml)
+        for o in redo:
+            for gp in self.owners[o]:
+                gp._set_theta(self.theta[o])
+
+    def count_evaluations(self) -> None:
+        """Add the evaluations since the last call to the GPs' ``n_lml_evaluations_``."""
+        for gps, n in zip(self.owners, self.n_evaluations, strict=True):
+            for gp in gps:
+                gp.n_lml_evaluations_ = getattr(gp, "n_lml_evaluations_", 0) + int(n)
+        self.n_evaluations[:] = 0
+
+
+def _distinct_distances(
+    gp: GaussianProcess, kind: str, cache: dict[Any, Any]
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Distinct training distances of ``gp`` (to ``2^-40``) and each entry's index into them."""
+    X = gp._data.X
+    key = ("distinct", kind, id(X))
+    if key not in cache:
+        D = gp._training_sqdist() if kind == "SquaredExponential" else gp._training_dist()
+        values, inverse = np.unique(_round_mantissa(D), return_inverse=True)
+        cache[key] = (values, inverse.reshape(D.shape).astype(np.intp), X)  # (X: keeps the id)
+    values, inverse, _ = cache[key]
+    return values, inverse
+
+
+#: Low mantissa bits ignored when distances are compared (relative 2^-40, about 1e-12).
+_DROPPED_BITS = 12
+
+
+def _round_mantissa(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``x`` (non-negative) with its lowest ``_DROPPED_BITS`` mantissa bits rounded away."""
+    bits = np.ascontiguousarray(x, dtype=np.float64).view(np.int64)
+    half = np.int64(1 << (_DROPPED_BITS - 1))
+    mask = np.int64(~((1 << _DROPPED_BITS) - 1))
+    return ((bits + half) & mask).view(np.float64)
+
+
+def _same_covariance(
+    a: GaussianProcess, b: GaussianProcess, kinds: list[str], cache: dict[Any, Any]
+) -> bool:
+    """Whether two prepared GPs have the same ``K_y`` at every ``theta``: training distances
+    (for the kernel ``kinds``) equal to ``2^-40`` relative, and equal replicate counts and
+    fixed noise ``alpha``."""
+    da, db = a._data, b._data
+    if da.X.shape != db.X.shape:
+        return False
+    if not (np.array_equal(da.counts, db.counts) and np.array_equal(a._alpha_u, b._alpha_u)):
+        return False
+    key = ("same", tuple(kinds), id(da.X), id(db.X))
+    if key not in cache:
+        same = True
+        for kind in kinds:
+            if kind == "SquaredExponential":
+                da_, db_ = a._training_sqdist(), b._training_sqdist()
+            else:
+                da_, db_ = a._training_dist(), b._training_dist()
+            same = same and bool(np.allclose(da_, db_, rtol=2.0**-40, atol=0.0))
+        cache[key] = (same, da.X, db.X)  # (the arrays: keeps the ids valid)
+    return bool(cache[key][0])
 
 
 def unique_rows(
@@ -410,6 +736,18 @@ class _Replicates:
         self.counts = counts.astype(np.float64)
         self.collapsed = U.shape[0] < n
         self.set_y(y)
+
+    def with_y(self, y: NDArray[np.float64]) -> _Replicates:
+        """The same grouping of the same inputs with targets ``y`` ``(n, n_targets)``."""
+        new = object.__new__(_Replicates)
+        new.X, new.inverse, new.counts, new.collapsed = (
+            self.X,
+            self.inverse,
+            self.counts,
+            self.collapsed,
+        )
+        new.set_y(y)
+        return new
 
     def set_y(self, y: NDArray[np.float64]) -> None:
         m = self.X.shape[0]
@@ -463,6 +801,9 @@ class GaussianProcess(ParamsMixin):
             likelihood evaluations fitting used. ``jitter_``: jitter that was needed (0 if none).
     """
 
+    #: Matrices shared by the steps of one EM (:meth:`_derive`); ``None`` outside it.
+    _shared: dict[Any, Any] | None = None
+
     def __init__(
         self,
         kernel: Kernel | None = None,
@@ -497,6 +838,50 @@ class GaussianProcess(ParamsMixin):
             self.kernel_.theta = self._optimize_theta(self.kernel_)
         self._solve()
         return self
+
+    def _derive(
+        self,
+        kernel: Kernel,
+        *,
+        alpha: NDArray[np.float64] | None = None,
+        y: NDArray[np.float64] | None = None,
+        shared: dict[Any, Any] | None = None,
+    ) -> GaussianProcess:
+        """A GP prepared (as by :meth:`_prepare`) on this prepared GP's training inputs, with
+        ``kernel`` and without the checks and grouping ``_prepare`` would repeat.
+
+        For the steps of an iterative fit on fixed inputs (the heteroscedastic EM): the
+        replicate grouping and the cached distances are shared. ``alpha``: fixed noise per
+        *distinct* input (rows of ``self._data.X``; default this GP's), so it is constant
+        within a replicate group by construction; ``y``: ``(n_samples,)`` targets (default
+        this GP's). Only for GPs with ``normalize_y=False`` (the targets are used as given).
+        ``shared``: a dict the caller owns (and clears when done) in which the GPs derived
+        with it keep the signal matrix and factor of their latest ``theta`` and noise, so that
+        a step that changes neither reuses them (the EM with fixed hyperparameters).
+        """
+        if self.normalize_y:
+            raise ValueError("_derive needs a GP with normalize_y=False")
+        new = object.__new__(type(self))
+        new.__dict__.update(self.get_params(deep=False))
+        d = self._data
+        new.kernel = kernel
+        new._alpha_u = self._alpha_u if alpha is None else np.asarray(alpha, dtype=np.float64)
+        new.alpha = new._alpha_u[d.inverse] if alpha is not None else self.alpha
+        if y is None:
+            new._data, new.y_train_ = d, self.y_train_
+        else:
+            new.y_train_ = y
+            new._data = d.with_y(y.reshape(y.shape[0], -1))
+        new.X_train_ = self.X_train_
+        new.n_features_in_ = self.n_features_in_
+        new._single_target = new.y_train_.ndim == 1
+        new._y_mean, new._y_std = self._y_mean, self._y_std
+        new._sqdist_cache = getattr(self, "_sqdist_cache", None)
+        new._dist_cache = getattr(self, "_dist_cache", None)
+        new.kernel_ = kernel.clone()
+        new.n_lml_evaluations_ = 0
+        new._shared = shared
+        return new
 
     def _prepare(self, X: ArrayLike, y: ArrayLike) -> GaussianProcess:
         """``fit`` up to the factorisation: checked data, replicate groups, ``kernel_`` as given.
@@ -714,10 +1099,32 @@ class GaussianProcess(ParamsMixin):
 
     def _solve(self) -> None:
         d = self._data
-        K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, self.kernel_.theta)
-        s = noise + self._alpha_u
-        K.flat[:: K.shape[0] + 1] += s / d.counts
-        self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
+        theta = self.kernel_.theta
+        shared: dict[Any, Any] | None = getattr(self, "_shared", None)
+        if shared is None:
+            K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, theta)
+            s = noise + self._alpha_u
+            K.flat[:: K.shape[0] + 1] += s / d.counts
+            self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
+        else:
+            # Steps of one EM on the same inputs (``_derive(shared=...)``): the signal matrix
+            # at an unchanged theta, and the factor at an unchanged noise too, are the ones
+            # computed before (the same arrays, so the same result).
+            key = tuple(type(leaf).__name__ for leaf in self.kernel_.leaves())
+            entry = shared.get(key)
+            if entry is None or not np.array_equal(entry["theta"], theta):
+                K, _, noise, _ = self._noise_and_signal(self.kernel_, d.X, False, theta)
+                entry = shared[key] = {"theta": theta, "K": K, "noise": noise}
+            noise = entry["noise"]
+            s = noise + self._alpha_u
+            factor = entry.get("factor")
+            if factor is not None and np.array_equal(factor[0], s):
+                self.L_, self.jitter_ = factor[1], factor[2]
+            else:
+                K = entry["K"].copy()
+                K.flat[:: K.shape[0] + 1] += s / d.counts
+                self.L_, self.jitter_ = cholesky_with_jitter(K)  # raises with the remedy
+                entry["factor"] = (s, self.L_, self.jitter_)
         self._train_noise = s / d.counts + self.jitter_  # K_y - K on the (unique) inputs
         self.alpha_ = _potrs(self.L_, d.ybar, lower=1)[0]
         self._noise_level = noise
@@ -725,7 +1132,7 @@ class GaussianProcess(ParamsMixin):
         lml = (  # Eq. (4) from this factorisation
             -0.5 * float(np.vdot(d.ybar, self.alpha_))
             - n_t * float(np.sum(np.log(self.L_.diagonal())))
-            - 0.5 * n_t * K.shape[0] * _LOG_2PI
+            - 0.5 * n_t * d.X.shape[0] * _LOG_2PI
         )
         if d.collapsed:
             lml += self._replicate_correction(s, d.counts, d.scatter)

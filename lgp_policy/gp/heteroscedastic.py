@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,7 +40,7 @@ from lgp_policy.gp.exact import (
     GaussianProcess,
     Optimizer,
     default_kernel,
-    fit_shared_hyperparameters,
+    fit_shared_hyperparameters_many,
 )
 from lgp_policy.gp.kernels import Exponential, Kernel, SquaredExponential
 
@@ -65,6 +66,7 @@ __all__ = [
     "default_noise_kernel",
     "fit_noise_model",
     "most_likely_em",
+    "most_likely_em_many",
     "signal_kernel",
 ]
 
@@ -156,16 +158,30 @@ def fixed_gp(k: Kernel, alpha: Any = 0.0, *, collapse_replicates: bool) -> Gauss
     )
 
 
-def _fit_z(make, zk: Kernel, U, z, var, prepare: bool = False) -> GaussianProcess:
+def _fit_z(
+    make, zk: Kernel, U, z, var, prepare: bool = False, template=None, shared=None
+) -> GaussianProcess:
     """The z-process on the distinct inputs ``U`` with known target noise ``var``.
 
     A single distinct input is given as two exact replicates of twice the noise (the same
     information), since a GP needs two samples; the replicates are collapsed exactly.
+    ``template``: the z-process of an earlier EM iteration on the same inputs and noise, whose
+    grouping and distances are reused (only the targets change); ``shared``: see
+    :meth:`GaussianProcess._derive`.
     """
     if U.shape[0] == 1:
+        z = np.repeat(z, 2)
+    if template is not None:
+        gp = template._derive(zk, y=z, shared=shared)
+        if not prepare:
+            gp._solve()
+        return gp
+    if U.shape[0] == 1:
         gp = make(zk, alpha=np.repeat(2.0 * var, 2))
-        return (gp._prepare if prepare else gp.fit)(np.repeat(U, 2, axis=0), np.repeat(z, 2))
-    gp = make(zk, alpha=var)
+        U = np.repeat(U, 2, axis=0)
+    else:
+        gp = make(zk, alpha=var)
+    gp._shared = shared
     return (gp._prepare if prepare else gp.fit)(U, z)
 
 
@@ -255,42 +271,147 @@ def most_likely_em(
         log_noise_bounds: ``(low, high)`` bounds of ``log r`` in the units of the targets.
         noise_offset: fixed constant mean of the z-processes (``None``: learnt).
     """
-    rng = check_random_state(random_state)
-    opt: dict[str, Any] = {"optimizer": optimizer, "n_restarts": n_restarts, "max_iter": max_iter}
-    lo, hi = (float(b) for b in log_noise_bounds)
+    return most_likely_em_many(
+        [datasets],
+        kernel,
+        noise_kernel,
+        learn=learn,
+        optimizer=optimizer,
+        n_restarts=n_restarts,
+        max_em_iter=max_em_iter,
+        tol=tol,
+        n_samples=n_samples,
+        collapse_replicates=collapse_replicates,
+        max_iter=max_iter,
+        random_state=random_state,
+        refit_kernel=refit_kernel,
+        log_noise_bounds=log_noise_bounds,
+        noise_offset=noise_offset,
+    )[0]
 
+
+def most_likely_em_many(
+    problems: list[list[tuple[NDArray[np.float64], NDArray[np.float64]]]],
+    kernel: Kernel,
+    noise_kernel: Kernel | None,
+    *,
+    learn: bool = True,
+    optimizer: Optimizer = "L-BFGS-B",
+    n_restarts: int = 0,
+    max_em_iter: int = 10,
+    tol: float = 0.05,
+    n_samples: int | None = None,
+    collapse_replicates: bool = True,
+    max_iter: int = 200,
+    random_state: int | np.random.Generator | None = None,
+    refit_kernel: Kernel | None = None,
+    log_noise_bounds: tuple[float, float] = (
+        2 * math.log(NOISE_BOUNDS[0]),
+        2 * math.log(NOISE_BOUNDS[1]),
+    ),
+    noise_offset: float | None = None,
+) -> list[EMResult]:
+    """Independent :func:`most_likely_em` runs, one per entry of ``problems`` (each a list of
+    data sets that share hyperparameters: the local models of one output), in lockstep.
+
+    Every learning step of the problems still running is one
+    :func:`~lgp_policy.gp.exact.fit_shared_hyperparameters_many` (their searches in lockstep,
+    the likelihoods of one round in one batched pass); each problem stops by its own rule.
+    Each result equals that of :func:`most_likely_em` on the problem alone, to rounding, when
+    nothing is drawn at random (``n_restarts=0``, ``n_samples=None``); otherwise the problems
+    draw from ``random_state`` in turn. Arguments: see :func:`most_likely_em`.
+    """
+    rng = check_random_state(random_state)
+    lo, hi = (float(b) for b in log_noise_bounds)
     make = functools.partial(fixed_gp, collapse_replicates=collapse_replicates)
+    cache: dict[Any, Any] = {}  # distances of the fixed inputs, shared by every learning step
+
+    def learn_all(groups: list[list[GaussianProcess]]) -> None:
+        fit_shared_hyperparameters_many(
+            groups,
+            optimizer=optimizer,
+            n_restarts=n_restarts,
+            random_state=rng,
+            max_iter=max_iter,
+            cache=cache,
+        )
 
     # Step 1: homoscedastic GP G1, its noise kept within the bounds.
     kernel = _with_noise_bounds(kernel, lo, hi)
     if learn:
-        gps = [make(kernel)._prepare(X, y) for X, y in datasets]
-        fit_shared_hyperparameters(gps, random_state=rng, **opt)
+        step1 = [[make(kernel)._prepare(X, y) for X, y in datasets] for datasets in problems]
+        learn_all(step1)
     else:
-        gps = [make(kernel).fit(X, y) for X, y in datasets]
-    homoscedastic_kernel = gps[0].kernel_.clone()
-    groups = []  # the GP's own distinct inputs (its solve is on them): X, inverse, counts, bias
-    for gp in gps:
-        d = gp._data
-        groups.append((d.X, d.inverse, d.counts, _log_mean_chi2_bias(d.counts)))
-    log_r0 = float(np.clip(math.log(gps[0]._noise_level), lo, hi))
-    log_r = [np.full(X.shape[0], log_r0) for X, _ in datasets]
-    sig = signal_kernel(homoscedastic_kernel) if refit_kernel is None else refit_kernel.clone()
-    if noise_kernel is None:
-        zk = default_noise_kernel(_signal_length_scale(homoscedastic_kernel), (lo, hi))
-    else:
-        zk = noise_kernel.clone()
-    best_obj = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
-    n_total = sum(X.shape[0] for X, _ in datasets)
-    objective = [best_obj]
-    best: tuple[Any, ...] = (gps, [None] * len(gps), log_r0, sig, zk, 0)
-    status, converged, n_iter = "max_em_iter reached", False, 0
+        step1 = [[make(kernel).fit(X, y) for X, y in datasets] for datasets in problems]
+    runs = [
+        _EMRun(datasets, gps, lo, hi, refit_kernel, noise_kernel)
+        for datasets, gps in zip(problems, step1, strict=True)
+    ]
     for _ in range(max_em_iter):
-        n_iter += 1
-        # Step 2: noise estimate at every training input from the posterior of f.
+        active = [run for run in runs if run.running]
+        if not active:
+            break
+        # Steps 2-3: noise estimates and the z-processes on their logs.
+        for run in active:
+            run.noise_targets(make, n_samples, rng, noise_offset, prepare=learn)
+        if learn:
+            learn_all([run.noise_gps for run in active])
+        # Step 4: GP with R = diag(r(x_i)), Eq. (5), on the inputs and groups of step 1.
+        for run in active:
+            run.refit(solve=not learn)
+        if learn:
+            learn_all([run.gps for run in active])
+        for run in active:
+            run.end_iteration(tol)
+    return [run.result() for run in runs]
+
+
+class _EMRun:
+    """The state of one problem's most-likely EM (:func:`most_likely_em_many`)."""
+
+    def __init__(self, datasets, gps, lo, hi, refit_kernel, noise_kernel) -> None:
+        self.datasets, self.gps, self.lo, self.hi = datasets, gps, lo, hi
+        self.homoscedastic_kernel = gps[0].kernel_.clone()
+        self.groups = []  # the GP's own distinct inputs: X, inverse, counts, log bias, log var
+        for gp in gps:
+            d = gp._data
+            self.groups.append(
+                (
+                    d.X,
+                    d.inverse,
+                    d.counts,
+                    _log_mean_chi2_bias(d.counts),
+                    _log_mean_chi2_var(d.counts),
+                )
+            )
+        self.base = gps  # inputs, replicate groups and distances of every later step's GPs
+        self.z_templates: Sequence[GaussianProcess | None] = [None] * len(gps)
+        log_r0 = float(np.clip(math.log(gps[0]._noise_level), lo, hi))
+        self.log_r = [np.full(X.shape[0], log_r0) for X, _ in datasets]
+        k0 = self.homoscedastic_kernel
+        self.sig = signal_kernel(k0) if refit_kernel is None else refit_kernel.clone()
+        if noise_kernel is None:
+            self.zk = default_noise_kernel(_signal_length_scale(k0), (lo, hi))
+        else:
+            self.zk = noise_kernel.clone()
+        self.best_obj = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
+        self.n_total = sum(X.shape[0] for X, _ in datasets)
+        self.objective = [self.best_obj]
+        self.best: tuple[Any, ...] = (gps, [None] * len(gps), log_r0, self.sig, self.zk, 0)
+        self.status, self.converged, self.n_iter = "max_em_iter reached", False, 0
+        self.running = True
+        # With fixed hyperparameters every z-process of a data set has the same K_y and every
+        # refit of f the same signal matrix: kept here between iterations (cleared at the end).
+        self.z_shared: list[dict[Any, Any]] = [{} for _ in gps]
+        self.f_shared: list[dict[Any, Any]] = [{} for _ in gps]
+
+    def noise_targets(self, make, n_samples, rng, noise_offset, prepare: bool) -> None:
+        """Steps 2-3: the log-noise targets and the z-processes on them (``noise_gps``)."""
+        self.n_iter += 1
+        lo, hi = self.lo, self.hi
         targets = []
-        for gp, (X, y), (U, inverse, counts, bias), lr in zip(
-            gps, datasets, groups, log_r, strict=True
+        for gp, (X, y), (U, inverse, counts, bias, _), lr in zip(
+            self.gps, self.datasets, self.groups, self.log_r, strict=True
         ):
             mu_u, var_u = gp._latent_at_training()  # at the distinct inputs, then per sample
             mu, var_f = mu_u[inverse, 0], var_u[inverse]
@@ -312,59 +433,78 @@ def most_likely_em(
             targets.append(np.clip(z, lo, hi))  # a zero residual means "at the floor"
         # Step 3: z-process G2 on the log noise, one shared constant mean.
         if noise_offset is None:
-            off = float(np.mean(np.concatenate(targets)))
+            self.off = float(np.mean(np.concatenate(targets)))
         else:
-            off = float(noise_offset)
-        noise_gps = [
-            _fit_z(make, zk, g[0], z - off, _log_mean_chi2_var(g[2]), prepare=learn)
-            for g, z in zip(groups, targets, strict=True)
-        ]
-        if learn:
-            fit_shared_hyperparameters(noise_gps, random_state=rng, **opt)
-            zk = noise_gps[0].kernel_.clone()
-        new_log_r = [  # z at the training inputs (the z-process's own, distinct inputs)
-            np.clip(zgp._latent_mean_at_training()[:, 0][g[1]] + off, lo, hi)
-            for zgp, g in zip(noise_gps, groups, strict=True)
-        ]
-        # Step 4: GP with R = diag(r(x_i)), Eq. (5).
-        gps = [
-            (make(sig, alpha=np.exp(lr))._prepare if learn else make(sig, alpha=np.exp(lr)).fit)(
-                X, y
+            self.off = float(noise_offset)
+        self.noise_gps = [
+            _fit_z(
+                make,
+                self.zk,
+                g[0],
+                z - self.off,
+                g[4],
+                prepare=prepare,
+                template=t,
+                shared=None if prepare else zs,
             )
-            for lr, (X, y) in zip(new_log_r, datasets, strict=True)
+            for g, z, t, zs in zip(
+                self.groups, targets, self.z_templates, self.z_shared, strict=True
+            )
         ]
-        if learn:
-            fit_shared_hyperparameters(gps, random_state=rng, **opt)
-            sig = gps[0].kernel_.clone()
-        obj = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
-        objective.append(obj)
-        change = max(float(np.max(np.abs(a - b))) for a, b in zip(new_log_r, log_r, strict=True))
-        log_r = new_log_r
-        if obj > best_obj:
-            best_obj = obj
-            best = (gps, noise_gps, off, sig, zk, n_iter)
-        step = obj - objective[-2]
-        if change < tol or abs(step) < OBJECTIVE_TOL * n_total:
-            status, converged = "converged", True
-            break
-        if step < 0:
-            status = "objective decreased"
-            break
-    gps_b, noise_b, off_b, sig_b, zk_b, it_b = best
-    return EMResult(
-        gps_b,
-        noise_b,
-        off_b,
-        homoscedastic_kernel,
-        sig_b,
-        zk_b,
-        n_iter,
-        converged,
-        (lo, hi),
-        objective,
-        it_b,
-        status,
-    )
+        self.z_templates = self.noise_gps
+
+    def refit(self, solve: bool) -> None:
+        """Step 4 with the (learnt) z-processes: ``gps`` prepared (or solved)."""
+        self.zk = self.noise_gps[0].kernel_.clone()
+        self.new_log_r_u = [  # z at the distinct training inputs (the z-process's own inputs)
+            np.clip(zgp._latent_mean_at_training()[:, 0] + self.off, self.lo, self.hi)
+            for zgp in self.noise_gps
+        ]
+        self.gps = [
+            b._derive(self.sig, alpha=np.exp(lr), shared=fs if solve else None)
+            for b, lr, fs in zip(self.base, self.new_log_r_u, self.f_shared, strict=True)
+        ]
+        if solve:
+            for gp in self.gps:
+                gp._solve()
+
+    def end_iteration(self, tol: float) -> None:
+        """The objective, the best iteration and the stopping rule (see most_likely_em)."""
+        self.sig = self.gps[0].kernel_.clone()
+        new_log_r = [lr[g[1]] for lr, g in zip(self.new_log_r_u, self.groups, strict=True)]
+        obj = float(sum(gp.log_marginal_likelihood_value_ for gp in self.gps))
+        self.objective.append(obj)
+        change = max(
+            float(np.max(np.abs(a - b))) for a, b in zip(new_log_r, self.log_r, strict=True)
+        )
+        self.log_r = new_log_r
+        if obj > self.best_obj:
+            self.best_obj = obj
+            self.best = (self.gps, self.noise_gps, self.off, self.sig, self.zk, self.n_iter)
+        step = obj - self.objective[-2]
+        if change < tol or abs(step) < OBJECTIVE_TOL * self.n_total:
+            self.status, self.converged, self.running = "converged", True, False
+        elif step < 0:
+            self.status, self.running = "objective decreased", False
+
+    def result(self) -> EMResult:
+        for cache in [*self.z_shared, *self.f_shared]:
+            cache.clear()  # the fitted GPs keep no copies of intermediate matrices
+        gps_b, noise_b, off_b, sig_b, zk_b, it_b = self.best
+        return EMResult(
+            gps_b,
+            noise_b,
+            off_b,
+            self.homoscedastic_kernel,
+            sig_b,
+            zk_b,
+            self.n_iter,
+            self.converged,
+            (self.lo, self.hi),
+            self.objective,
+            it_b,
+            self.status,
+        )
 
 
 def check_method(method: Any) -> str:

@@ -158,6 +158,8 @@ class _Stationary(Kernel):
 
     @property
     def theta(self) -> NDArray[np.float64]:
+        if np.ndim(self.length_scale) == 0:  # (the same array, without hstack's overhead)
+            return np.log(np.array([self.variance, self.length_scale], dtype=np.float64))
         return np.log(np.hstack([self.variance, np.atleast_1d(self.length_scale)]))
 
     @theta.setter
@@ -167,6 +169,10 @@ class _Stationary(Kernel):
             raise ValueError(f"theta must have {self.n_dims} entries, got {value.shape[0]}")
         self.variance = float(np.exp(value[0]))
         self.length_scale = np.exp(value[1:]) if self.anisotropic else float(np.exp(value[1]))
+
+    @property
+    def n_dims(self) -> int:
+        return 1 + int(np.size(self.length_scale))
 
     @property
     def bounds(self) -> NDArray[np.float64]:
@@ -342,6 +348,10 @@ class WhiteNoise(Kernel):
         if value.shape[0] != 1:
             raise ValueError(f"theta must have 1 entry, got {value.shape[0]}")
         self.noise_level = float(np.exp(value[0]))
+
+    @property
+    def n_dims(self) -> int:
+        return 1
 
     @property
     def bounds(self) -> NDArray[np.float64]:

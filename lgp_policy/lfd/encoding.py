@@ -398,9 +398,16 @@ class DemonstrationEncoder:
             if progress is not None:
                 progress(f"encoding frame '{name}'")
             Y = data[name]  # (n_demos, T, d)
-            self.models_[name] = [
-                self._make_model().fit(X, Y[:, :, j].reshape(-1)) for j in range(Y.shape[2])
-            ]
+            if self.model == "local" and Y.shape[2] > 1:
+                # One LocalGP per dimension, fitted together: the dimensions share the inputs
+                # and clusters, and their hyperparameter searches run in lockstep with batched
+                # likelihoods (the same models as one fit per dimension, to rounding).
+                multi = self._make_model().fit(X, Y.reshape(-1, Y.shape[2]))
+                self.models_[name] = list(multi.estimators_)
+            else:
+                self.models_[name] = [
+                    self._make_model().fit(X, Y[:, :, j].reshape(-1)) for j in range(Y.shape[2])
+                ]
         self.std_scale_ = new_demonstration_scale(n) if self.calibrate else 1.0
         self.fit_time_ = _time.perf_counter() - start
         return self

@@ -280,6 +280,66 @@ def test_stacked_lml_equals_the_sum_of_the_models(kernel, per_sample_noise):
         np.testing.assert_allclose(grad, np.sum([p[1] for p in parts], axis=0), atol=1e-9)
 
 
+@pytest.mark.parametrize(
+    "kernel, per_sample_noise",
+    [
+        (SquaredExponential(1.0, 0.1) + WhiteNoise(0.1), False),  # step 1 of the EM
+        (Exponential(1.0, 0.2), False),  # the z-process: the same known noise everywhere
+    ],
+)
+def test_stacked_lml_shares_the_factorisation_of_equal_windows(kernel, per_sample_noise):
+    """Windows of one time grid (replicated, as demonstrations are) have the same K_y up to the
+    last bits of their distances: they are one problem with the windows' targets side by side,
+    and the kernel is evaluated on the grid's distinct distances; the value and the gradient
+    are still the sum of the windows' _lml."""
+    rng = np.random.default_rng(3)
+    grid = np.linspace(0.0, 1.0, 200)
+    gps = []
+    for lo, hi in ((0, 46), (46, 92), (92, 138), (138, 150)):  # three equal windows, one short
+        X = np.tile(grid[lo:hi], 4)[:, None]
+        y = np.sin(6.0 * X[:, 0]) + 0.1 * rng.standard_normal(X.shape[0])
+        alpha = 0.0 if kernel.leaves()[-1].is_noise else 0.3
+        gps.append(
+            GaussianProcess(kernel, optimizer=None, normalize_y=False, alpha=alpha).fit(X, y)
+        )
+    stacked = _StackedLML.build(gps)
+    assert stacked is not None
+    assert stacked.Y.shape[0] == 2  # the three equal windows are one problem
+    assert set(stacked.distinct) == {type(leaf).__name__ for leaf in kernel.leaves()} - {
+        "WhiteNoise"
+    }  # the kernel is evaluated on the grid's distinct distances
+    for shift in (0.0, 0.5, -0.8):
+        theta = kernel.theta + shift
+        value, grad = stacked(theta)
+        parts = [gp._lml(theta, eval_gradient=True) for gp in gps]
+        assert value == pytest.approx(sum(p[0] for p in parts), rel=1e-11)
+        np.testing.assert_allclose(
+            grad, np.sum([p[1] for p in parts], axis=0), rtol=1e-9, atol=1e-8
+        )
+
+
+def test_derived_gp_equals_a_prepared_one(data):
+    """_derive (the EM's later steps on the same inputs) gives the GP _prepare would."""
+    X, y = data
+    kernel = SquaredExponential(1.3, 0.7)
+    base = GaussianProcess(_kernel(), optimizer=None, normalize_y=False).fit(X, y)
+    alpha_u = np.exp(np.sin(3.0 * base._data.X[:, 0]) - 2.0)  # per distinct input
+    y2 = np.cos(X[:, 0])
+    derived = base._derive(kernel, alpha=alpha_u, y=y2)
+    derived._solve()
+    fresh = GaussianProcess(
+        kernel, optimizer=None, normalize_y=False, alpha=alpha_u[base._data.inverse]
+    ).fit(X, y2)
+    assert derived._data.collapsed and fresh._data.collapsed
+    np.testing.assert_array_equal(derived.alpha_, fresh.alpha_)
+    np.testing.assert_array_equal(derived.L_, fresh.L_)
+    assert derived.log_marginal_likelihood_value_ == fresh.log_marginal_likelihood_value_
+    Xs = np.linspace(0.0, 5.0, 7)[:, None]
+    np.testing.assert_array_equal(derived.predict(Xs), fresh.predict(Xs))
+    with pytest.raises(ValueError, match="normalize_y"):
+        GaussianProcess(_kernel(), optimizer=None).fit(X, y)._derive(kernel)
+
+
 def test_shared_hyperparameters_same_with_and_without_stacking(data, monkeypatch):
     X, y = data
     parts = [(X[i::3], y[i::3]) for i in range(3)]
@@ -289,7 +349,7 @@ def test_shared_hyperparameters_same_with_and_without_stacking(data, monkeypatch
         return fit_shared_hyperparameters(gps)
 
     stacked = learn()
-    monkeypatch.setattr(_StackedLML, "build", classmethod(lambda cls, gps: None))
+    monkeypatch.setattr(_StackedLML, "build", classmethod(lambda cls, gps, cache=None: None))
     np.testing.assert_allclose(learn(), stacked, atol=1e-5)
 
 
@@ -307,3 +367,64 @@ def test_prepared_gps_learn_the_same_as_fitted_ones(data):
     for a, b in zip(prepared, fitted, strict=True):
         np.testing.assert_allclose(a.predict(Xs, return_std=True), b.predict(Xs, return_std=True))
         np.testing.assert_allclose(a._latent_mean_at_training(), a._latent_at_training()[0])
+
+
+def test_stacked_owners_evaluate_each_owners_sum():
+    """Several owners (outputs, each with its local models and its own theta) in one stack:
+    any subset of them evaluated together gives each owner's own sum of _lml."""
+    rng = np.random.default_rng(5)
+    kernel = SquaredExponential(1.0, 0.1)
+    owners = []
+    for o in range(3):
+        gps = []
+        for lo, hi in ((0, 30), (30, 60), (60, 70)):
+            x = np.linspace(0.0, 1.0, 100)[lo:hi]
+            X = np.tile(x, 3)[:, None]
+            y = np.sin((3 + o) * X[:, 0]) + 0.1 * rng.standard_normal(X.shape[0])
+            alpha = np.tile(np.exp(rng.uniform(-4.0, -1.0, hi - lo)), 3)
+            gps.append(
+                GaussianProcess(kernel, optimizer=None, normalize_y=False, alpha=alpha).fit(X, y)
+            )
+        owners.append(gps)
+    stacked = _StackedLML.build_many(owners)
+    assert stacked is not None
+    thetas = [kernel.theta + np.array([0.3 * o, -0.2 * o]) for o in range(3)]
+    for subset in ([0, 1, 2], [2], [0, 2]):
+        results = stacked.evaluate(subset, [thetas[o] for o in subset])
+        for o, res in zip(subset, results, strict=True):
+            assert res is not None
+            parts = [gp._lml(thetas[o], eval_gradient=True) for gp in owners[o]]
+            assert res[0] == pytest.approx(sum(p[0] for p in parts), rel=1e-11)
+            np.testing.assert_allclose(res[1], np.sum([p[1] for p in parts], axis=0), rtol=1e-9)
+
+
+def test_stacked_set_theta_equals_each_gps_own():
+    """The batched set-up after a lockstep search (one factorisation per problem, shared by
+    equal windows) leaves every GP as its own _set_theta would, to rounding."""
+    from lgp_policy.gp.exact import fit_shared_hyperparameters_many
+
+    rng = np.random.default_rng(6)
+    grid = np.linspace(0.0, 1.0, 100)
+    groups = []
+    for o in range(3):
+        gps = []
+        for lo, hi in ((0, 30), (30, 60), (60, 70)):
+            X = np.tile(grid[lo:hi], 3)[:, None]
+            y = np.sin((3 + o) * X[:, 0]) + 0.1 * rng.standard_normal(X.shape[0])
+            gps.append(GaussianProcess(_kernel(), optimizer=None, normalize_y=False)._prepare(X, y))
+        groups.append(gps)
+    thetas = fit_shared_hyperparameters_many(groups)
+    Xs = np.linspace(0.0, 1.0, 9)[:, None]
+    for gps, theta in zip(groups, thetas, strict=True):
+        for gp in gps:
+            ref = GaussianProcess(_kernel(), optimizer=None, normalize_y=False)._prepare(
+                gp.X_train_, gp.y_train_
+            )
+            ref._set_theta(theta)
+            np.testing.assert_allclose(gp.kernel_.theta, theta)
+            np.testing.assert_allclose(gp.L_, ref.L_, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(gp.alpha_, ref.alpha_, rtol=1e-9, atol=1e-10)
+            assert gp.log_marginal_likelihood_value_ == pytest.approx(
+                ref.log_marginal_likelihood_value_, rel=1e-11
+            )
+            np.testing.assert_allclose(gp.predict(Xs), ref.predict(Xs), rtol=1e-9, atol=1e-10)

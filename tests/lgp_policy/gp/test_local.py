@@ -314,3 +314,70 @@ def test_noise_model_does_not_overshoot_a_fast_split():
     _, std_fine = gp.predict(fine[:, None], return_std=True)
     spread_step = np.max(np.abs(np.diff(spread))) / 20  # the data's variation per fine step
     assert np.max(np.abs(np.diff(std_fine))) <= 2.0 * spread_step
+
+
+@pytest.mark.parametrize("complete", [True, False])
+def test_columns_fitted_in_lockstep_equal_separate_fits(complete):
+    """A 2-D y fits its columns' EMs in lockstep (batched likelihoods): each column's model is
+    the one a separate fit gives, to rounding, whether every local model learns the shared
+    hyperparameters (complete) or a thinned subset does."""
+    rng = np.random.default_rng(4)
+    grid = np.linspace(0.0, 1.0, 120)
+    X = np.tile(grid, 4)[:, None]  # four demonstrations on one grid, as the encoder has them
+    spread = 0.02 + 0.1 * grid  # noise that varies
+    Y = np.column_stack(
+        [
+            np.sin(6.0 * X[:, 0]) + np.tile(spread, 4) * rng.standard_normal(X.shape[0]),
+            X[:, 0] ** 2 + 0.05 * rng.standard_normal(X.shape[0]),
+            np.where(X[:, 0] > 0.5, 1.0, 0.0) + 0.01 * rng.standard_normal(X.shape[0]),
+        ]
+    )
+    params = {"kernel": SquaredExponential(1.0, 0.1) + WhiteNoise(0.1), "random_state": 0}
+    if not complete:
+        params.update(n_shared_models=2, shared_points=10)
+    joint = LocalGP(**params).fit(X, Y)
+    Xs = np.linspace(0.0, 1.0, 57)[:, None]
+    mean, std = joint.predict(Xs, return_std=True)
+    for j in range(Y.shape[1]):
+        alone = LocalGP(**params).fit(X, Y[:, j])
+        m, s = alone.predict(Xs, return_std=True)
+        np.testing.assert_allclose(mean[:, j], m, rtol=1e-6, atol=1e-8 * np.std(Y[:, j]))
+        np.testing.assert_allclose(std[:, j], s, rtol=1e-6)
+        assert joint.estimators_[j].em_status_ == alone.em_status_
+
+
+def test_fixed_hyperparameter_ems_reuse_their_factors_exactly(monkeypatch):
+    """With fixed hyperparameters (the local models after the shared ones are learnt on a
+    subset) every z-process of a model has the same K_y and every refit the same signal matrix:
+    reused between EM iterations (fewer factorisations), with bit-identical results, and
+    dropped after the fit."""
+    from lgp_policy.gp import exact
+
+    X, y = demos(600)
+    X = X + np.random.default_rng(2).uniform(-0.01, 0.01, X.shape)  # distinct inputs
+    params = {"max_points": 60, "n_shared_models": 2, "shared_points": 20, "random_state": 0}
+    Xs = np.linspace(0.0, 10.0, 33)[:, None]
+    calls = []
+    factorise = exact.cholesky_with_jitter
+    monkeypatch.setattr(exact, "cholesky_with_jitter", lambda K: calls.append(1) or factorise(K))
+
+    def fit_and_predict():
+        calls.clear()
+        model = LocalGP(kernel(), **params).fit(X, y)
+        return model, *model.predict(Xs, return_std=True), len(calls)
+
+    reused, mean, std, n_reused = fit_and_predict()
+    for model in reused.models_:
+        for gp in (model.gp_, model.noise_gp_):
+            assert not getattr(gp, "_shared", None)  # emptied: no matrices kept
+    original = GaussianProcess._derive
+
+    def without_sharing(self, kernel, **kwargs):
+        kwargs["shared"] = None
+        return original(self, kernel, **kwargs)
+
+    monkeypatch.setattr(GaussianProcess, "_derive", without_sharing)
+    _, m2, s2, n_fresh = fit_and_predict()
+    np.testing.assert_array_equal(mean, m2)
+    np.testing.assert_array_equal(std, s2)
+    assert n_reused < n_fresh

@@ -1,0 +1,66 @@
+"""The lockstep L-BFGS-B driver takes the steps scipy.optimize.minimize takes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.optimize
+
+from lgp_policy.gp import _lbfgsb
+from lgp_policy.gp._lbfgsb import minimize_many
+
+
+def _problem(rng):
+    A = rng.standard_normal((3, 3))
+    H = A @ A.T + 0.1 * np.eye(3)
+    c = rng.standard_normal(3)
+
+    def f(x):
+        return float(0.5 * x @ H @ x - c @ x + np.sum(np.cos(3.0 * x))), H @ x - c - 3.0 * np.sin(
+            3.0 * x
+        )
+
+    return f
+
+
+@pytest.mark.parametrize("max_iter", [200, 3])
+def test_lockstep_results_equal_scipy_minimize(max_iter):
+    """Several bounded, non-convex problems at once (some stopping at the bounds, some at the
+    iteration limit): each ends exactly where scipy.optimize.minimize ends, and each round
+    hands over only the problems still searching."""
+    rng = np.random.default_rng(0)
+    funcs = [_problem(rng) for _ in range(12)]
+    bounds = [np.array([[-1.0, 2.0], [-0.5, 0.5], [-3.0, 3.0]])] * len(funcs)
+    x0s = [rng.uniform(-1.0, 0.5, 3) for _ in funcs]
+    rounds = []
+
+    def evaluate(indices, xs):
+        rounds.append(list(indices))
+        return [funcs[i](x) for i, x in zip(indices, xs, strict=True)]
+
+    results = minimize_many(evaluate, x0s, bounds, max_iter)
+    for f, x0, b, (x, value) in zip(funcs, x0s, bounds, results, strict=True):
+        ref = scipy.optimize.minimize(
+            f, x0, jac=True, method="L-BFGS-B", bounds=b, options={"maxiter": max_iter}
+        )
+        np.testing.assert_array_equal(x, ref.x)
+        assert value == ref.fun
+    assert rounds[0] == list(range(len(funcs)))
+    assert len(rounds[-1]) < len(funcs)  # the problems do not all take as many evaluations
+
+
+def test_fallback_without_the_routine_gives_the_same(monkeypatch):
+    rng = np.random.default_rng(1)
+    funcs = [_problem(rng) for _ in range(3)]
+    bounds = [np.array([[-1.0, 2.0]] * 3)] * 3
+    x0s = [np.zeros(3)] * 3
+
+    def evaluate(indices, xs):
+        return [funcs[i](x) for i, x in zip(indices, xs, strict=True)]
+
+    direct = minimize_many(evaluate, x0s, bounds)
+    monkeypatch.setattr(_lbfgsb, "_driver_ok", False)
+    fallback = minimize_many(evaluate, x0s, bounds)
+    for (a, fa), (b, fb) in zip(direct, fallback, strict=True):
+        np.testing.assert_array_equal(a, b)
+        assert fa == fb
