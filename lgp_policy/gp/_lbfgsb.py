@@ -9,9 +9,12 @@ the steps ``scipy.optimize.minimize`` would take (the routine is the same and se
 values; tested), and the evaluations the problems ask for in one round are handed to the
 caller together, so that they can be computed in one batched pass.
 
-The routine is scipy's (``scipy.optimize._lbfgsb.setulb``, the C version of scipy >= 1.15).
-Where it is not available in that form, every problem runs through
-``scipy.optimize.minimize`` one after another (same results, without the saving).
+The routine is scipy's (``scipy.optimize._lbfgsb.setulb``, the C version of scipy >= 1.15), a
+private module: it is used only on the scipy versions it was checked on (:data:`CHECKED_SCIPY`,
+1.17.1 at the time of writing) and only after a self-check on first use (a small bounded problem
+must end exactly where ``scipy.optimize.minimize`` ends). Otherwise, or on any error in that
+check, every problem runs through ``scipy.optimize.minimize`` one after another (same results,
+without the saving).
 """
 
 from __future__ import annotations
@@ -19,17 +22,29 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
+import scipy
 import scipy.optimize
 from numpy.typing import NDArray
 
 __all__ = ["minimize_many"]
 
-try:  # scipy >= 1.15: the C routine with integer task codes
-    from scipy.optimize import _lbfgsb as _routine
+#: scipy versions (major, minor) whose C routine has the signature and task codes used here.
+CHECKED_SCIPY = ((1, 15), (1, 16), (1, 17))
 
-    _SETULB: Callable[..., None] | None = getattr(_routine, "setulb", None)
-except ImportError:  # pragma: no cover - depends on the installed scipy
-    _SETULB = None
+
+def _scipy_version() -> tuple[int, int]:
+    major, minor = scipy.__version__.split(".")[:2]
+    return int(major), int("".join(ch for ch in minor if ch.isdigit()) or 0)
+
+
+_SETULB: Callable[..., None] | None = None
+if _scipy_version() in CHECKED_SCIPY:
+    try:  # scipy >= 1.15: the C routine with integer task codes
+        from scipy.optimize import _lbfgsb as _routine
+
+        _SETULB = getattr(_routine, "setulb", None)
+    except ImportError:  # pragma: no cover - depends on the installed scipy
+        _SETULB = None
 
 #: scipy.optimize.minimize's L-BFGS-B defaults.
 MAXCOR = 10
@@ -39,7 +54,8 @@ MAXLS = 20
 MAXFUN = 15000
 
 _FG, _NEW_X, _STOP = 3, 1, 5  # task codes of the C routine
-_driver_ok = _SETULB is not None
+_driver_ok: bool | None = None if _SETULB is not None else False
+"""Whether the direct driver is used: ``None`` until the self-check has run."""
 
 Evaluate = Callable[[list[int], list[NDArray[np.float64]]], list[tuple[float, NDArray[np.float64]]]]
 
@@ -127,11 +143,14 @@ def minimize_many(
         ``res.fun`` for each problem.
     """
     global _driver_ok
+    if _driver_ok is None:
+        _driver_ok = _self_check()
     if _driver_ok:
-        try:
-            return _lockstep(evaluate, x0s, bounds, max_iter)
-        except TypeError:  # pragma: no cover - a scipy whose routine has another signature
-            _driver_ok = False
+        return _lockstep(evaluate, x0s, bounds, max_iter)
+    return _one_by_one(evaluate, x0s, bounds, max_iter)
+
+
+def _one_by_one(evaluate: Evaluate, x0s, bounds, max_iter: int):
     out = []
     for i, (x0, b) in enumerate(zip(x0s, bounds, strict=True)):
 
@@ -161,3 +180,25 @@ def _lockstep(evaluate: Evaluate, x0s, bounds, max_iter: int):
             s.n_fev += 1
         waiting = [i for i in waiting if searches[i].advance()]
     return [(s.x, float(s.f)) for s in searches]
+
+
+def _self_check() -> bool:
+    """Whether the direct driver ends where ``scipy.optimize.minimize`` ends, bit for bit, on a
+    small bounded non-convex problem (one bound active); ``False`` on any error."""
+
+    def f(x: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        c = np.array([1.5, -0.4])
+        value = float(0.5 * x @ x - c @ x + np.sum(np.cos(3.0 * x)))
+        return value, x - c - 3.0 * np.sin(3.0 * x)
+
+    x0, bounds = np.array([0.3, 0.2]), np.array([[-1.0, 1.0], [-0.5, 0.5]])
+
+    def evaluate(indices, xs):
+        return [f(x) for x in xs]
+
+    try:
+        ((x, value),) = _lockstep(evaluate, [x0], [bounds], 200)
+        ref = scipy.optimize.minimize(f, x0, jac=True, method="L-BFGS-B", bounds=bounds)
+        return bool(np.array_equal(x, ref.x) and value == float(ref.fun))
+    except Exception:  # any failure of a private routine means: do not use it
+        return False

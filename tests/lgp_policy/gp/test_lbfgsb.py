@@ -64,3 +64,42 @@ def test_fallback_without_the_routine_gives_the_same(monkeypatch):
     for (a, fa), (b, fb) in zip(direct, fallback, strict=True):
         np.testing.assert_array_equal(a, b)
         assert fa == fb
+
+
+def test_the_self_check_passes_on_a_checked_scipy():
+    """On the scipy versions the driver was checked on, the routine is found and passes."""
+    if _lbfgsb._scipy_version() not in _lbfgsb.CHECKED_SCIPY:
+        assert _lbfgsb._SETULB is None
+        return
+    assert _lbfgsb._SETULB is not None
+    assert _lbfgsb._self_check()
+
+
+@pytest.mark.parametrize("kind", ["raises", "junk"])
+def test_a_changed_routine_fails_the_self_check_and_the_results_stay(monkeypatch, kind):
+    """A private routine that raises, or that runs but ends elsewhere (another scipy's
+    semantics), is detected on first use; every problem then goes through minimize."""
+
+    def routine(*args):
+        if kind == "raises":
+            raise ValueError("failed in converting 12th argument")
+        x, task = args[1], args[11]
+        x[:] = 0.0  # "converged" at a point that is not scipy's answer
+        task[:] = (4, 0)
+
+    rng = np.random.default_rng(2)
+    funcs = [_problem(rng) for _ in range(2)]
+    bounds = [np.array([[-1.0, 2.0]] * 3)] * 2
+    x0s = [np.full(3, 0.5)] * 2
+
+    def evaluate(indices, xs):
+        return [funcs[i](x) for i, x in zip(indices, xs, strict=True)]
+
+    monkeypatch.setattr(_lbfgsb, "_SETULB", routine)
+    monkeypatch.setattr(_lbfgsb, "_driver_ok", None)
+    results = minimize_many(evaluate, x0s, bounds)
+    assert _lbfgsb._driver_ok is False
+    for f, x0, b, (x, value) in zip(funcs, x0s, bounds, results, strict=True):
+        ref = scipy.optimize.minimize(f, x0, jac=True, method="L-BFGS-B", bounds=b)
+        np.testing.assert_array_equal(x, ref.x)
+        assert value == ref.fun

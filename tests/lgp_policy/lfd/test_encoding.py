@@ -168,3 +168,21 @@ def test_planar_frames_match_the_spatial_encoding_of_the_same_motion():
         DemonstrationEncoder(model="empirical").fit(
             times, joints, [e[:, :3] for e in ees2], frames2
         )
+
+
+def test_new_demonstration_scale_is_the_t_over_gaussian_quantile_ratio():
+    """The factor is t_{n-1}(q) / z(q), q = (1 + level) / 2 (values from scipy.stats), 1 for a
+    single demonstration, and falls towards 1 as demonstrations are added."""
+    import scipy.stats
+
+    from lgp_policy.lfd.encoding import new_demonstration_scale
+
+    for n in (2, 3, 4, 8, 50):
+        for level in (0.9, 0.95):
+            q = 0.5 * (1.0 + level)
+            expected = scipy.stats.t.ppf(q, n - 1) / scipy.stats.norm.ppf(q)
+            assert new_demonstration_scale(n, level) == pytest.approx(expected, rel=1e-12)
+    assert new_demonstration_scale(1) == 1.0
+    assert new_demonstration_scale(4) == pytest.approx(1.62, abs=0.01)
+    scales = [new_demonstration_scale(n) for n in range(2, 30)]
+    assert all(a > b > 1.0 for a, b in zip(scales, scales[1:]))
