@@ -12,7 +12,7 @@ from gymnasium.utils import EzPickle
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from gym_coffee import STAGES
+from gym_coffee import PHYSICS_PRESETS, STAGES
 from gym_coffee._checks import check_bool, check_choice, check_int, check_real, check_vector
 from gym_coffee.kinematics import PandaKinematics
 from gym_coffee.robot import (
@@ -57,19 +57,10 @@ __all__ = [
     "obs_part",
 ]
 
-#: Physics time step (s) and physics steps per control step; control period CONTROL_DT = 0.04 s (25
-#: Hz).
-PHYSICS_DT = 1.0 / 250.0
-N_SUBSTEPS = 10
+#: Physics time step (s) and physics steps per control step of the default physics
+#: (``gym_coffee.PHYSICS_PRESETS``); control period CONTROL_DT = 0.04 s (25 Hz) with every preset.
+PHYSICS_DT, N_SUBSTEPS = PHYSICS_PRESETS["default"][:2]
 CONTROL_DT = PHYSICS_DT * N_SUBSTEPS
-#: ``physics`` presets: (physics time step (s), physics steps per control step, solver
-#: iterations). ``"default"`` is the task's physics; ``"fast"`` (5 physics steps of 8 ms, 20
-#: solver iterations; the same 40 ms control period) makes ``env.step`` ~40% cheaper but gives
-#: other trajectories (see docs/design-env.md, "Physics settings").
-PHYSICS_PRESETS: dict[str, tuple[float, int, int]] = {
-    "default": (PHYSICS_DT, N_SUBSTEPS, 50),
-    "fast": (1.0 / 125.0, 5, 20),
-}
 #: Time limit used at registration (steps); 400 steps = 16 s.
 MAX_EPISODE_STEPS = 400
 #: Uniform noise (rad) added to each joint of the start posture.

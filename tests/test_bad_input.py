@@ -272,6 +272,11 @@ cli(
     "argument --level: invalid choice: 'medium'",
 )
 cli(
+    "record-physics",
+    "record --out {tmp}/d.npz --physics slow",
+    "argument --physics: invalid choice: 'slow'",
+)
+cli(
     "record-level-and-env-id",
     f"record --out {{tmp}}/d.npz --level hard --env-id {gym_coffee.ENV_ID}",
     "argument --env-id: not allowed with argument --level",
@@ -310,6 +315,8 @@ for value in ("nan", "inf", "-inf", "-0.1", "2", "half"):
     )
 cli("evaluate-policy-missing", "evaluate {tmp}/nothere.npz", "argument policy: no such file")
 cli("evaluate-level", "evaluate {policy} --level expert", "argument --level: invalid choice")
+cli("evaluate-physics", "evaluate {policy} --physics turbo", "argument --physics: invalid choice")
+cli("run-physics", "run --out {tmp}/r --physics ''", "argument --physics: invalid choice")
 cli("evaluate-level-empty", "evaluate {policy} --level ''", "argument --level: invalid choice")
 cli(
     "evaluate-env-id",

@@ -167,7 +167,8 @@ def check_env_id(env_id: str) -> str:
 
 def add_env_options(p: argparse.ArgumentParser, what: str = "the layouts") -> None:
     """Add ``--level`` (a name of :data:`gym_coffee.LEVELS`) and ``--env-id`` (a registered id),
-    mutually exclusive; read them with :func:`env_id_from_args`."""
+    mutually exclusive, read with :func:`env_id_from_args`, and ``--physics`` (a preset of
+    :data:`gym_coffee.PHYSICS_PRESETS`), read with :func:`env_kwargs_from_args`."""
     g = p.add_mutually_exclusive_group()
     levels = ", ".join(f"{name}: {env_id}" for name, env_id in gym_coffee.LEVELS.items())
     g.add_argument(
@@ -181,6 +182,13 @@ def add_env_options(p: argparse.ArgumentParser, what: str = "the layouts") -> No
         default=None,
         metavar="ID",
         help=f"registered env id of {what}, instead of --level (default {gym_coffee.ENV_ID})",
+    )
+    p.add_argument(
+        "--physics",
+        choices=list(gym_coffee.PHYSICS_PRESETS),
+        default="default",
+        help=f"physics preset of {what} (default: the task's physics; fast: 5 physics steps of "
+        "8 ms with 20 solver iterations, ~40%% less CPU per step, other trajectories)",
     )
 
 
@@ -200,6 +208,12 @@ def env_id_from_args(args: argparse.Namespace) -> str:
         return gym_coffee.LEVELS[level]
     env_id = getattr(args, "env_id", None)
     return gym_coffee.ENV_ID if env_id is None else check_env_id(env_id)
+
+
+def env_kwargs_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The env keywords chosen with :func:`add_env_options` (``{}`` for the default physics)."""
+    physics = getattr(args, "physics", "default")
+    return {} if physics == "default" else {"physics": physics}
 
 
 # ------------------------------------------------------------- outputs: one overwrite rule

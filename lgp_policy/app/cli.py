@@ -25,6 +25,7 @@ from lgp_policy.app._common import (
     check_video_output,
     demos_int,
     env_id_from_args,
+    env_kwargs_from_args,
     run_command,
     seed_int,
 )
@@ -86,7 +87,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     from gym_coffee.demonstrations import collect_demonstrations
 
     env_id = check_record(args)
-    env = gym.make(env_id)
+    env_kwargs = env_kwargs_from_args(args)
+    env = gym.make(env_id, **env_kwargs)
     try:
         demos = collect_demonstrations(env, n=args.n, seed=args.seed, progress=not args.no_progress)
     finally:
@@ -102,7 +104,12 @@ def cmd_record(args: argparse.Namespace) -> int:
         print(f"the teacher failed on seeds {failed}; they were skipped")
     if args.video is not None:
         path = record_video(
-            env_id, demos[0], args.video, progress=not args.no_progress, overwrite=args.force
+            env_id,
+            demos[0],
+            args.video,
+            env_kwargs=env_kwargs,
+            progress=not args.no_progress,
+            overwrite=args.force,
         )
         print(f"wrote {path}")
     return 0

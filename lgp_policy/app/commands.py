@@ -31,6 +31,7 @@ from lgp_policy.app._common import (
     check_video_output,
     demos_int,
     env_id_from_args,
+    env_kwargs_from_args,
     finite_float,
     input_file,
     int_range,
@@ -219,6 +220,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         args.episodes,
         seed=args.seed,
         env_id=env_id,
+        env_kwargs=env_kwargs_from_args(args),
         workers=args.workers,
         video=args.video,
         progress=not args.no_progress,
@@ -228,6 +230,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         force=args.force,
     )
     result["env_id"] = env_id
+    result["env_kwargs"] = env_kwargs_from_args(args)
     print(format_results(result))
     if result.get("video"):
         print(f"video: {result['video']}")
@@ -257,5 +260,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         plots=not args.no_plots,
         policy_kwargs=kwargs,
         env_id=env_id,
+        env_kwargs=env_kwargs_from_args(args),
     )
     return 0

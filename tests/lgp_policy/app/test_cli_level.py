@@ -80,3 +80,40 @@ def test_run_passes_the_chosen_level_to_the_pipeline(options, level, tmp_path, m
     monkeypatch.setattr(pipeline, "run_pipeline", lambda out, **kw: seen.append(kw["env_id"]))
     assert main(["run", "--out", str(tmp_path / "r"), *options]) == 0
     assert seen == [gym_coffee.LEVELS[level]]
+
+
+@pytest.mark.parametrize(
+    ("options", "kwargs"), [([], {}), (["--physics", "fast"], {"physics": "fast"})]
+)
+def test_run_and_evaluate_pass_the_physics_preset(options, kwargs, tmp_path, monkeypatch):
+    """``--physics`` reaches the pipeline's and the evaluation's env keywords (the default
+    physics as no keyword) and the evaluation's JSON records it."""
+    from lgp_policy.app import pipeline
+
+    seen: list[dict] = []
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda out, **kw: seen.append(kw["env_kwargs"]))
+    assert main(["run", "--out", str(tmp_path / "r"), *options]) == 0
+
+    def fake_evaluate(policy, n_episodes, *args, env_kwargs=None, **kw):
+        seen.append(dict(env_kwargs or {}))
+        return {"n_episodes": n_episodes}
+
+    monkeypatch.setattr(commands, "load_policy", lambda path: object())
+    monkeypatch.setattr(evaluation, "evaluate_policy_stages", fake_evaluate)
+    monkeypatch.setattr(evaluation, "format_results", lambda r: "formatted")
+    policy, out = tmp_path / "policy.npz", tmp_path / "r.json"
+    policy.write_bytes(b"stub")  # never opened: load_policy is stubbed
+    assert main(["evaluate", str(policy), "--episodes", "2", "--json", str(out), *options]) == 0
+    assert seen == [kwargs, kwargs]
+    assert json.loads(out.read_text())["env_kwargs"] == kwargs
+
+
+def test_record_with_the_fast_physics(tmp_path, capsys):
+    """A real recording with ``--physics fast``: the teacher succeeds and the file records the
+    preset among its env keywords."""
+    out = tmp_path / "fast.npz"
+    argv = ["record", "--n", "1", "--seed", "7", "--out", str(out), "--physics", "fast"]
+    assert main([*argv, "--no-progress"]) == 0, capsys.readouterr().err
+    demos = DemonstrationSet.load(out)
+    assert demos.metadata["env_kwargs"].get("physics") == "fast"
+    assert len(demos) == 1 and demos[0].success

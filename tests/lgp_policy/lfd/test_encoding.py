@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -185,4 +187,4 @@ def test_new_demonstration_scale_is_the_t_over_gaussian_quantile_ratio():
     assert new_demonstration_scale(1) == 1.0
     assert new_demonstration_scale(4) == pytest.approx(1.62, abs=0.01)
     scales = [new_demonstration_scale(n) for n in range(2, 30)]
-    assert all(a > b > 1.0 for a, b in zip(scales, scales[1:]))
+    assert all(a > b > 1.0 for a, b in itertools.pairwise(scales))
