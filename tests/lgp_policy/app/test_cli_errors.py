@@ -154,7 +154,11 @@ def test_evaluate_json_written_with_force_and_deprecated_alias(
 ):
     path = tmp_path / "results.json"
     assert main(["evaluate", str(policy_file), "--json", str(path)]) == 0
-    assert json.loads(path.read_text()) == {**fake_evaluation, "env_id": gym_coffee.ENV_ID, "env_kwargs": {}}
+    assert json.loads(path.read_text()) == {
+        **fake_evaluation,
+        "env_id": gym_coffee.ENV_ID,
+        "env_kwargs": {},
+    }
     assert main(["evaluate", str(policy_file), "--json", str(path)]) == 2
     assert main(["evaluate", str(policy_file), "--json", str(path), "--overwrite"]) == 0
     assert "--overwrite is deprecated; use --force" in capsys.readouterr().err
