@@ -200,7 +200,8 @@ class _Stationary(Kernel):
         Xs = self._scaled(X)
         Ys = Xs if Y is None else self._scaled(_as_2d(Y, "Y"))
         if Xs.shape[1] == 1:  # 1-D inputs (time): a broadcast difference is exact and fast
-            d2 = (Xs[:, 0][:, None] - Ys[:, 0][None, :]) ** 2
+            d2 = np.subtract(Xs[:, 0][:, None], Ys[:, 0][None, :])
+            np.multiply(d2, d2, out=d2)  # (the same bits as ** 2, without a second array)
         else:
             d2 = np.sum(Xs**2, axis=1)[:, None] + np.sum(Ys**2, axis=1)[None, :] - 2.0 * Xs @ Ys.T
             np.maximum(d2, 0.0, out=d2)
@@ -214,7 +215,8 @@ class _Stationary(Kernel):
         if X.shape[1] == 1:  # 1-D: |x - y| directly (no square and root)
             Xs = self._scaled(X)
             Ys = Xs if Y is None else self._scaled(_as_2d(Y, "Y"))
-            return Xs, np.abs(Xs[:, 0][:, None] - Ys[:, 0][None, :])
+            d = np.subtract(Xs[:, 0][:, None], Ys[:, 0][None, :])
+            return Xs, np.abs(d, out=d)
         Xs, d2 = self._sqdist(X, Y)
         return Xs, np.sqrt(d2)
 
@@ -240,9 +242,12 @@ class SquaredExponential(_Stationary):
         if eval_gradient and Y is not None:
             raise ValueError("eval_gradient is only supported when Y is None")
         Xs, d2 = self._sqdist(X, Y)
+        if not eval_gradient:  # Eq. (3) in place in the (fresh) distance array, the same bits
+            np.multiply(d2, -0.5, out=d2)
+            np.exp(d2, out=d2)
+            d2 *= self.variance
+            return d2
         K = self.variance * np.exp(-0.5 * d2)  # Eq. (3)
-        if not eval_gradient:
-            return K
         if self.anisotropic:
             # d/d log l_d of -(x_d - y_d)^2 / (2 l_d^2) = (x_d - y_d)^2 / l_d^2
             per_dim = (Xs[:, None, :] - Xs[None, :, :]) ** 2
@@ -287,9 +292,12 @@ class Exponential(_Stationary):
         if eval_gradient and Y is not None:
             raise ValueError("eval_gradient is only supported when Y is None")
         Xs, d = self._dist(X, Y)
+        if not eval_gradient:  # in place in the (fresh) distance array, the same bits
+            np.negative(d, out=d)
+            np.exp(d, out=d)
+            d *= self.variance
+            return d
         K = self.variance * np.exp(-d)
-        if not eval_gradient:
-            return K
         if self.anisotropic:
             # d/d log l_k of -d = (x_k - y_k)^2 / (l_k^2 d); 0 on the diagonal (d = 0)
             per_dim = (Xs[:, None, :] - Xs[None, :, :]) ** 2
