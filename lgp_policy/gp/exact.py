@@ -242,7 +242,8 @@ def fit_shared_hyperparameters_many(
     groups are learnt one after another (restarts draw from ``random_state`` in group order).
     """
     stacked = None
-    if optimizer == "L-BFGS-B" and n_restarts == 0 and len(groups) > 1:
+    if optimizer == "L-BFGS-B" and n_restarts == 0 and (len(groups) > 1 or len(groups[0]) > 1):
+        # (one group of one GP: its own ``_lml``, as fit_shared_hyperparameters does)
         stacked = _StackedLML.build_many(groups, cache)
     if stacked is None:
         return [
