@@ -1004,7 +1004,12 @@ class GaussianProcess(ParamsMixin):
                     if type(leaf) is SquaredExponential:
                         out = leaf.from_sqdist(sub, self._training_sqdist(), eval_gradient)
                     else:
-                        out = Exponential.from_dist(sub, self._training_dist(), eval_gradient)
+                        out = Exponential.from_dist(
+                            sub,
+                            self._training_dist,
+                            eval_gradient,
+                            x=X[:, 0] if X.shape[1] == 1 else None,
+                        )
                     Kl = out[0] if eval_gradient else out
                     if eval_gradient:
                         grads.extend((start + j, G) for j, G in enumerate(out[1]))
