@@ -444,19 +444,17 @@ def test_one_group_in_lockstep_equals_fit_shared_hyperparameters():
             X = (np.tile(t, 3) if replicated else np.sort(rng.uniform(lo, lo + 0.3, 75)))[:, None]
             data.append((X, np.sin(5 * X[:, 0]) + 0.1 * rng.standard_normal(75)))
 
-        def prepared():
-            return [
+        many, one = (
+            [
                 GaussianProcess(_kernel(), optimizer=None, normalize_y=False)._prepare(X, y)
                 for X, y in data
             ]
-
-        many, one = prepared(), prepared()
+            for _ in range(2)
+        )
         (theta,) = fit_shared_hyperparameters_many([many])
         ref = fit_shared_hyperparameters(one)
         np.testing.assert_allclose(theta, ref, rtol=1e-10, atol=1e-12)
-        assert sum(gp.n_lml_evaluations_ for gp in many) == sum(
-            gp.n_lml_evaluations_ for gp in one
-        )
+        assert sum(gp.n_lml_evaluations_ for gp in many) == sum(gp.n_lml_evaluations_ for gp in one)
         Xs = np.linspace(0.0, 0.9, 7)[:, None]
         for a, b in zip(many, one, strict=True):
             assert a.log_marginal_likelihood_value_ == pytest.approx(
