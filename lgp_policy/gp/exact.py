@@ -242,7 +242,8 @@ def fit_shared_hyperparameters_many(
     groups are learnt one after another (restarts draw from ``random_state`` in group order).
     """
     stacked = None
-    if optimizer == "L-BFGS-B" and n_restarts == 0 and len(groups) > 1:
+    if optimizer == "L-BFGS-B" and n_restarts == 0 and (len(groups) > 1 or len(groups[0]) > 1):
+        # (one group of one GP: its own ``_lml``, as fit_shared_hyperparameters does)
         stacked = _StackedLML.build_many(groups, cache)
     if stacked is None:
         return [
@@ -1003,7 +1004,12 @@ class GaussianProcess(ParamsMixin):
                     if type(leaf) is SquaredExponential:
                         out = leaf.from_sqdist(sub, self._training_sqdist(), eval_gradient)
                     else:
-                        out = Exponential.from_dist(sub, self._training_dist(), eval_gradient)
+                        out = Exponential.from_dist(
+                            sub,
+                            self._training_dist,
+                            eval_gradient,
+                            x=X[:, 0] if X.shape[1] == 1 else None,
+                        )
                     Kl = out[0] if eval_gradient else out
                     if eval_gradient:
                         grads.extend((start + j, G) for j, G in enumerate(out[1]))

@@ -428,3 +428,38 @@ def test_stacked_set_theta_equals_each_gps_own():
                 ref.log_marginal_likelihood_value_, rel=1e-11
             )
             np.testing.assert_allclose(gp.predict(Xs), ref.predict(Xs), rtol=1e-9, atol=1e-10)
+
+
+def test_one_group_in_lockstep_equals_fit_shared_hyperparameters():
+    """A single group (a single-output LocalGP's learning steps) takes the lockstep path and
+    its batched set-up: the same theta and the same fitted GPs as fit_shared_hyperparameters,
+    on distinct inputs (one problem per GP) and on replicated ones (equal windows)."""
+    from lgp_policy.gp.exact import fit_shared_hyperparameters, fit_shared_hyperparameters_many
+
+    rng = np.random.default_rng(8)
+    for replicated in (False, True):
+        data = []
+        for lo in (0.0, 0.3, 0.6):
+            t = np.linspace(lo, lo + 0.3, 25)
+            X = (np.tile(t, 3) if replicated else np.sort(rng.uniform(lo, lo + 0.3, 75)))[:, None]
+            data.append((X, np.sin(5 * X[:, 0]) + 0.1 * rng.standard_normal(75)))
+
+        many, one = (
+            [
+                GaussianProcess(_kernel(), optimizer=None, normalize_y=False)._prepare(X, y)
+                for X, y in data
+            ]
+            for _ in range(2)
+        )
+        (theta,) = fit_shared_hyperparameters_many([many])
+        ref = fit_shared_hyperparameters(one)
+        np.testing.assert_allclose(theta, ref, rtol=1e-10, atol=1e-12)
+        assert sum(gp.n_lml_evaluations_ for gp in many) == sum(gp.n_lml_evaluations_ for gp in one)
+        Xs = np.linspace(0.0, 0.9, 7)[:, None]
+        for a, b in zip(many, one, strict=True):
+            assert a.log_marginal_likelihood_value_ == pytest.approx(
+                b.log_marginal_likelihood_value_, rel=1e-11
+            )
+            np.testing.assert_allclose(
+                a.predict(Xs, return_std=True), b.predict(Xs, return_std=True), rtol=1e-9
+            )

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from lgp_policy.gp.kernels import Exponential, SquaredExponential, Sum, WhiteNoise
+from lgp_policy.gp.kernels import SEPARABLE_RANGE, Exponential, SquaredExponential, Sum, WhiteNoise
 
 
 @pytest.fixture
@@ -129,3 +129,24 @@ def test_cached_distance_forms_equal_the_kernels(n_features):
         np.testing.assert_allclose(K2, K, rtol=1e-12)
         np.testing.assert_allclose(np.stack(G2, axis=2), G, rtol=1e-10, atol=1e-14)
         np.testing.assert_allclose(form(theta, dist, False), K, rtol=1e-12)
+
+
+@pytest.mark.parametrize("length_scale", [0.05, 0.7, 40.0])
+def test_exponential_of_1d_inputs_as_a_product_equals_the_direct_formula(length_scale):
+    """k(X, Y) and from_dist(..., x=) of 1-D inputs use exp(-|x - y| / l) =
+    min(e^-u e^v, e^u e^-v) within SEPARABLE_RANGE length scales, the direct formula beyond."""
+    rng = np.random.default_rng(3)
+    x = np.sort(rng.uniform(0.0, 3.0, 40))
+    y = np.concatenate([[x[5]], rng.uniform(-0.5, 3.5, 25)])  # one equal input: k = variance
+    k = Exponential(1.3, length_scale)
+    direct = 1.3 * np.exp(-np.abs(x[:, None] - y[None, :]) / length_scale)
+    assert (np.ptp(np.r_[x, y]) / length_scale <= SEPARABLE_RANGE) == (length_scale > 0.1)
+    np.testing.assert_allclose(k(x[:, None], y[:, None]), direct, rtol=5e-14, atol=0)
+    dist = np.abs(x[:, None] - x[None, :])
+    theta = np.log([1.3, length_scale])
+    K, G = Exponential.from_dist(theta, lambda: dist, True, x=x)
+    K0, G0 = k(x[:, None], eval_gradient=True)
+    np.testing.assert_allclose(K, K0, rtol=5e-14, atol=0)
+    np.testing.assert_allclose(np.stack(G, axis=2), G0, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(Exponential.from_dist(theta, dist, False, x=x), K0, rtol=5e-14)
+    np.testing.assert_allclose(np.diag(k(x[:, None])), 1.3, rtol=1e-15)
