@@ -96,13 +96,16 @@ class PandaKinematics:
         self._rot = np.eye(3)
         self._jac = np.zeros((6, 7))
 
-    def _chain(
-        self, q: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """One pass of the chain: grasp point (3,), hand rotation (3, 3), geometric Jacobian (6, 7).
-
-        Plain floats (columns x, y, z of the current frame's rotation and its origin p): for
-        3-vectors this is several times faster than numpy; the three arrays are built once."""
+    def _walk(
+        self,
+        q: NDArray[np.float64],
+        axes: list[tuple[float, float, float]] | None = None,
+        origins: list[tuple[float, float, float]] | None = None,
+    ) -> tuple[float, ...]:
+        """Walk the chain in plain floats (columns x, y, z of the current frame's rotation and its
+        origin p; for 3-vectors several times faster than numpy). Returns the last frame's
+        ``x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2``; appends each joint's axis and origin to
+        ``axes`` and ``origins`` when given (the Jacobian's columns)."""
         if q.shape != (7,):
             raise ValueError(f"q must have shape (7,), got {q.shape}")
         cos, sin = np.cos(q).tolist(), np.sin(q).tolist()
@@ -110,8 +113,6 @@ class PandaKinematics:
         y0, y1, y2 = 0.0, 1.0, 0.0
         z0, z1, z2 = 0.0, 0.0, 1.0
         p0, p1, p2 = self.base_position.tolist()
-        axes: list[tuple[float, float, float]] = []
-        origins: list[tuple[float, float, float]] = []
         for i in range(7):
             t0, t1, t2 = _XYZ[i]
             p0 += t0 * x0 + t1 * y0 + t2 * z0
@@ -136,8 +137,19 @@ class PandaKinematics:
                 c * y1 - s * x1,
                 c * y2 - s * x2,
             )
-            axes.append((z0, z1, z2))
-            origins.append((p0, p1, p2))
+            if axes is not None and origins is not None:
+                axes.append((z0, z1, z2))
+                origins.append((p0, p1, p2))
+        return x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2
+
+    def _chain(
+        self, q: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """One pass of the chain: grasp point (3,), hand rotation (3, 3), geometric Jacobian
+        (6, 7)."""
+        axes: list[tuple[float, float, float]] = []
+        origins: list[tuple[float, float, float]] = []
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = self._walk(q, axes, origins)
         d = GRASP_OFFSET
         e0, e1, e2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
         j0: list[float] = []
@@ -160,40 +172,9 @@ class PandaKinematics:
         return np.array([e0, e1, e2]), rot, np.array([j0, j1, j2, w0, w1, w2])
 
     def _position(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The grasp point (3,) alone: the position arithmetic of :meth:`_chain`, operation for
-        operation (the same bits), without the Jacobian and the hand rotation (~2x faster; the
-        env needs only the point at every step)."""
-        if q.shape != (7,):
-            raise ValueError(f"q must have shape (7,), got {q.shape}")
-        cos, sin = np.cos(q).tolist(), np.sin(q).tolist()
-        x0, x1, x2 = 1.0, 0.0, 0.0
-        y0, y1, y2 = 0.0, 1.0, 0.0
-        z0, z1, z2 = 0.0, 0.0, 1.0
-        p0, p1, p2 = self.base_position.tolist()
-        for i in range(7):
-            t0, t1, t2 = _XYZ[i]
-            p0 += t0 * x0 + t1 * y0 + t2 * z0
-            p1 += t0 * x1 + t1 * y1 + t2 * z1
-            p2 += t0 * x2 + t1 * y2 + t2 * z2
-            cr, sr = _ROLL_CS[i]
-            if sr != 0.0:
-                y0, y1, y2, z0, z1, z2 = (
-                    cr * y0 + sr * z0,
-                    cr * y1 + sr * z1,
-                    cr * y2 + sr * z2,
-                    cr * z0 - sr * y0,
-                    cr * z1 - sr * y1,
-                    cr * z2 - sr * y2,
-                )
-            c, s = cos[i], sin[i]
-            x0, x1, x2, y0, y1, y2 = (
-                c * x0 + s * y0,
-                c * x1 + s * y1,
-                c * x2 + s * y2,
-                c * y0 - s * x0,
-                c * y1 - s * x1,
-                c * y2 - s * x2,
-            )
+        """The grasp point (3,) alone: :meth:`_chain`'s walk without the Jacobian and the hand
+        rotation (the same bits; the env needs only the point at every step)."""
+        *_, z0, z1, z2, p0, p1, p2 = self._walk(q)
         d = GRASP_OFFSET
         return np.array([p0 + d * z0, p1 + d * z1, p2 + d * z2])
 
