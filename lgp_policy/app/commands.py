@@ -213,6 +213,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from lgp_policy.app.evaluation import evaluate_policy_stages, format_results
 
     env_id = _check_evaluate(args)
+    env_kwargs = env_kwargs_from_args(args)
     policy = load_policy(args.policy)
     print(f"evaluating {args.policy} on {env_id}", flush=True)
     result = evaluate_policy_stages(  # the video is rendered during the evaluation itself
@@ -220,7 +221,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         args.episodes,
         seed=args.seed,
         env_id=env_id,
-        env_kwargs=env_kwargs_from_args(args),
+        env_kwargs=env_kwargs,
         workers=args.workers,
         video=args.video,
         progress=not args.no_progress,
@@ -230,7 +231,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         force=args.force,
     )
     result["env_id"] = env_id
-    result["env_kwargs"] = env_kwargs_from_args(args)
+    result["env_kwargs"] = env_kwargs
     print(format_results(result))
     if result.get("video"):
         print(f"video: {result['video']}")
