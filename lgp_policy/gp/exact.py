@@ -129,6 +129,16 @@ def _minimize(obj, theta0, bounds, optimizer: Optimizer, max_iter: int):
     return np.clip(res.x, bounds[:, 0], bounds[:, 1]), float(res.fun)
 
 
+def _as_loss(
+    theta: NDArray[np.float64], value: float, grad: NDArray[np.float64]
+) -> tuple[float, NDArray[np.float64]]:
+    """What the optimisers minimise: ``-LML`` and its gradient; a failed (non-finite)
+    evaluation is a wall of height 1e25 with a zero gradient."""
+    if not np.isfinite(value):
+        return 1e25, np.zeros_like(theta)
+    return -value, -grad
+
+
 def maximize_lml(
     lml: Callable[[NDArray[np.float64]], tuple[float, NDArray[np.float64]]],
     theta0: ArrayLike,
@@ -147,10 +157,7 @@ def maximize_lml(
     bounds = np.asarray(bounds, dtype=np.float64)
 
     def obj(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        value, grad = lml(theta)
-        if not np.isfinite(value):
-            return 1e25, np.zeros_like(theta)
-        return -value, -grad
+        return _as_loss(theta, *lml(theta))
 
     starts = [np.asarray(theta0, dtype=np.float64)]
     if n_restarts > 0:
@@ -261,9 +268,7 @@ def fit_shared_hyperparameters_many(
     def evaluate(indices, thetas):
         out = []
         for i, theta, res in zip(indices, thetas, stacked.evaluate(indices, thetas), strict=True):
-            value, grad = _lml_sum(groups[i], theta) if res is None else res
-            # as maximize_lml: minimise -LML, a failed evaluation is a wall
-            out.append((1e25, np.zeros_like(theta)) if not np.isfinite(value) else (-value, -grad))
+            out.append(_as_loss(theta, *(_lml_sum(groups[i], theta) if res is None else res)))
         return out
 
     bounds = [np.asarray(gps[0].kernel_.bounds, dtype=np.float64) for gps in groups]
