@@ -63,7 +63,13 @@ Evaluate = Callable[[list[int], list[NDArray[np.float64]]], list[tuple[float, ND
 class _Search:
     """The state of one problem's L-BFGS-B (the arrays scipy's driver allocates)."""
 
-    def __init__(self, x0: NDArray[np.float64], bounds: NDArray[np.float64], max_iter: int):
+    def __init__(
+        self,
+        x0: NDArray[np.float64],
+        bounds: NDArray[np.float64],
+        max_iter: int,
+        ftol: float = FTOL,
+    ):
         n = x0.shape[0]
         lo, hi = bounds[:, 0], bounds[:, 1]
         self.x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi).copy()
@@ -83,6 +89,7 @@ class _Search:
         self.isave = np.zeros(44, dtype=np.int32)
         self.dsave = np.zeros(29)
         self.max_iter = max_iter
+        self.factr = ftol / np.finfo(float).eps
         self.n_iter = 0
         self.n_fev = 0
         self.done = False
@@ -90,7 +97,7 @@ class _Search:
     def advance(self) -> bool:
         """Run the routine until it asks for an evaluation (True) or stops (False)."""
         assert _SETULB is not None
-        factr = FTOL / np.finfo(float).eps
+        factr = self.factr
         while True:
             _SETULB(
                 MAXCOR,
@@ -128,6 +135,7 @@ def minimize_many(
     x0s: Sequence[NDArray[np.float64]],
     bounds: Sequence[NDArray[np.float64]],
     max_iter: int = 200,
+    ftol: float = FTOL,
 ) -> list[tuple[NDArray[np.float64], float]]:
     """Minimise independent problems ``i`` by L-BFGS-B (scipy's defaults), in lockstep.
 
@@ -137,6 +145,8 @@ def minimize_many(
         x0s: start of each problem (clipped to its bounds).
         bounds: ``(n_i, 2)`` bounds of each problem.
         max_iter: iteration limit per problem (``options={"maxiter": ...}``).
+        ftol: relative decrease of ``f`` below which a search stops (``options={"ftol":
+            ...}``; default scipy's).
 
     Returns:
         ``[(x_i, f_i), ...]``: what ``scipy.optimize.minimize`` returns as ``res.x`` and
@@ -146,11 +156,11 @@ def minimize_many(
     if _driver_ok is None:
         _driver_ok = _self_check()
     if _driver_ok:
-        return _lockstep(evaluate, x0s, bounds, max_iter)
-    return _one_by_one(evaluate, x0s, bounds, max_iter)
+        return _lockstep(evaluate, x0s, bounds, max_iter, ftol)
+    return _one_by_one(evaluate, x0s, bounds, max_iter, ftol)
 
 
-def _one_by_one(evaluate: Evaluate, x0s, bounds, max_iter: int):
+def _one_by_one(evaluate: Evaluate, x0s, bounds, max_iter: int, ftol: float = FTOL):
     out = []
     for i, (x0, b) in enumerate(zip(x0s, bounds, strict=True)):
 
@@ -159,15 +169,25 @@ def _one_by_one(evaluate: Evaluate, x0s, bounds, max_iter: int):
             return f, g
 
         res = scipy.optimize.minimize(
-            fun, x0, jac=True, method="L-BFGS-B", bounds=b, options={"maxiter": max_iter}
+            fun,
+            x0,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=b,
+            options={"maxiter": max_iter, "ftol": ftol},
         )
         out.append((np.asarray(res.x, dtype=np.float64), float(res.fun)))
     return out
 
 
-def _lockstep(evaluate: Evaluate, x0s, bounds, max_iter: int):
+def _lockstep(evaluate: Evaluate, x0s, bounds, max_iter: int, ftol: float = FTOL):
     searches = [
-        _Search(np.asarray(x0, dtype=np.float64).ravel(), np.asarray(b, dtype=np.float64), max_iter)
+        _Search(
+            np.asarray(x0, dtype=np.float64).ravel(),
+            np.asarray(b, dtype=np.float64),
+            max_iter,
+            ftol,
+        )
         for x0, b in zip(x0s, bounds, strict=True)
     ]
     waiting = [i for i, s in enumerate(searches) if s.advance()]

@@ -50,6 +50,13 @@ MIN_RESIDUAL_FRACTION = 0.05
 #: The EM has converged when its objective changes by less than this many nats per sample.
 OBJECTIVE_TOL = 1e-3
 
+SEARCH_FTOL = 1e-6
+"""Relative tolerance on ``-LML`` at which the EM's hyperparameter searches stop (L-BFGS-B's
+``ftol``; scipy's default is 2.2e-9). A search is re-run from its optimum in every iteration,
+and the EM itself stops at changes of ``OBJECTIVE_TOL`` nats per sample: at 1e-6 a search
+stops where one more step would gain less than about 1e-6 of the likelihood (a few 1e-4 nats
+on the local models' few hundred samples), a thousandth of what the EM resolves."""
+
 NOISE_BOUNDS = (1e-3, 10.0)
 """Default bounds of the noise standard deviation ``sqrt(r(x))``, relative to the standard
 deviation of the training targets. The lower end is the floor that keeps the noise model
@@ -334,6 +341,7 @@ def most_likely_em_many(
             random_state=rng,
             max_iter=max_iter,
             cache=cache,
+            ftol=SEARCH_FTOL,
         )
 
     # Step 1: homoscedastic GP G1, its noise kept within the bounds.

@@ -463,3 +463,41 @@ def test_one_group_in_lockstep_equals_fit_shared_hyperparameters():
             np.testing.assert_allclose(
                 a.predict(Xs, return_std=True), b.predict(Xs, return_std=True), rtol=1e-9
             )
+
+
+def test_stacked_exponential_of_1d_inputs_is_separable_and_equals_the_sum(monkeypatch):
+    """The z-process's exponential kernel on 1-D distinct inputs is evaluated as a product of
+    exponentials (2 m per problem instead of m^2) while every problem's range is within
+    SEPARABLE_RANGE length scales, and directly beyond; both equal the sum of the models'
+    _lml (value and gradient)."""
+    from lgp_policy.gp.kernels import SEPARABLE_RANGE
+
+    rng = np.random.default_rng(4)
+    kernel = Exponential(1.0, 0.5)
+    gps = []
+    for lo, n in ((0.0, 40), (1.0, 23), (2.0, 31)):
+        X = np.sort(rng.uniform(lo, lo + 1.0, n))[:, None]
+        y = np.sin(6.0 * X[:, 0]) + 0.1 * rng.standard_normal(n)
+        alpha = np.exp(rng.uniform(-4.0, -1.0, n))
+        gps.append(
+            GaussianProcess(kernel, optimizer=None, normalize_y=False, alpha=alpha).fit(X, y)
+        )
+    stacked = _StackedLML.build(gps)
+    assert stacked is not None and stacked.centred is not None
+    widest = max(float(np.ptp(gp._data.X)) for gp in gps)
+    calls = []
+    original = np.minimum
+
+    def minimum(*args, **kwargs):  # the separable form's min(e^-u e^v, e^u e^-v)
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(np, "minimum", minimum)
+    for log_l, separable in ((np.log(0.5), True), (np.log(widest / SEPARABLE_RANGE) - 0.1, False)):
+        theta = np.array([0.3, log_l])
+        calls.clear()
+        value, grad = stacked(theta)
+        assert bool(calls) == separable
+        parts = [gp._lml(theta, eval_gradient=True) for gp in gps]
+        assert value == pytest.approx(sum(p[0] for p in parts), rel=1e-12, abs=1e-10)
+        np.testing.assert_allclose(grad, np.sum([p[1] for p in parts], axis=0), atol=1e-9)

@@ -103,3 +103,33 @@ def test_a_changed_routine_fails_the_self_check_and_the_results_stay(monkeypatch
         ref = scipy.optimize.minimize(f, x0, jac=True, method="L-BFGS-B", bounds=b)
         np.testing.assert_array_equal(x, ref.x)
         assert value == ref.fun
+
+
+@pytest.mark.parametrize("driver_ok", [True, False])
+def test_ftol_is_scipys_ftol(monkeypatch, driver_ok):
+    """A looser ``ftol`` (the EM's searches) ends where ``minimize`` with that option ends,
+    with the direct driver and with the fallback, and stops sooner than the default."""
+    if driver_ok and _lbfgsb._SETULB is None:
+        pytest.skip("the direct driver is not available on this scipy")
+    monkeypatch.setattr(_lbfgsb, "_driver_ok", driver_ok)
+    rng = np.random.default_rng(5)
+    funcs = [_problem(rng) for _ in range(6)]
+    bounds = [np.array([[-1.0, 2.0], [-0.5, 0.5], [-3.0, 3.0]])] * len(funcs)
+    x0s = [rng.uniform(-1.0, 0.5, 3) for _ in funcs]
+    counts = {}
+    for ftol in (_lbfgsb.FTOL, 1e-4):
+        n = [0]
+
+        def evaluate(indices, xs, n=n):
+            n[0] += len(indices)
+            return [funcs[i](x) for i, x in zip(indices, xs, strict=True)]
+
+        results = minimize_many(evaluate, x0s, bounds, ftol=ftol)
+        counts[ftol] = n[0]
+        for f, x0, b, (x, value) in zip(funcs, x0s, bounds, results, strict=True):
+            ref = scipy.optimize.minimize(
+                f, x0, jac=True, method="L-BFGS-B", bounds=b, options={"ftol": ftol}
+            )
+            np.testing.assert_array_equal(x, ref.x)
+            assert value == ref.fun
+    assert counts[1e-4] < counts[_lbfgsb.FTOL]
