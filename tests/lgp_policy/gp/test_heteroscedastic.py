@@ -107,3 +107,28 @@ def test_bad_parameters(kwargs, match):
         HeteroscedasticGP(**kwargs).fit(X, y)
     with pytest.raises(ValueError, match="X contains NaN"):
         HeteroscedasticGP().fit(np.full((3, 1), np.nan), np.zeros(3))
+
+
+def test_em_searches_stop_at_search_ftol(monkeypatch):
+    """Every hyperparameter search of the EM (a global model and a LocalGP's lockstep) runs
+    L-BFGS-B with SEARCH_FTOL; the exact GP keeps scipy's default."""
+    from lgp_policy.gp import _lbfgsb, exact, heteroscedastic
+    from lgp_policy.gp.local import LocalGP
+
+    seen = []
+    original = exact.minimize_many
+
+    def spy(evaluate, x0s, bounds, max_iter=200, ftol=_lbfgsb.FTOL):
+        seen.append(ftol)
+        return original(evaluate, x0s, bounds, max_iter, ftol)
+
+    monkeypatch.setattr(exact, "minimize_many", spy)
+    rng = np.random.default_rng(3)
+    X = np.sort(rng.uniform(0.0, 1.0, 120))[:, None]
+    y = np.sin(6.0 * X[:, 0]) + (0.05 + 0.2 * X[:, 0]) * rng.standard_normal(120)
+    HeteroscedasticGP(max_em_iter=2).fit(X, y)
+    LocalGP(max_points=40, max_em_iter=2).fit(X, np.c_[y, -y])
+    assert seen and set(seen) == {heteroscedastic.SEARCH_FTOL}
+    seen.clear()
+    GaussianProcess().fit(X, y)
+    assert seen == [_lbfgsb.FTOL]
