@@ -24,6 +24,9 @@ __all__ = ["ASSETS_DIR", "Simulation"]
 
 #: Folder of the package's URDF assets (cup, coffee machine, table).
 ASSETS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
+#: Simulated time (s) to which :meth:`Simulation.control_joints`' ``position_gain`` refers (the
+#: default physics step).
+GAIN_TIMESTEP = 1.0 / 250.0
 
 logger = logging.getLogger(__name__)
 
@@ -313,13 +316,21 @@ class Simulation:
         max_velocities: ArrayLike | None = None,
         position_gain: float = 0.1,
     ) -> None:
-        """Position control of the given joints with force and (optionally) velocity limits."""
+        """Position control of the given joints with force and (optionally) velocity limits.
+
+        ``position_gain`` is the fraction of the position error the controller corrects per
+        :data:`GAIN_TIMESTEP` of simulated time (when no force or velocity limit binds). PyBullet's
+        gain acts per physics step, so it is converted to ``timestep``: the controller's time
+        constant, and the arm's response per control step, do not depend on the physics step.
+        """
         body = self.bodies[name]
         control = self.p.setJointMotorControl2
         mode = pybullet.POSITION_CONTROL
         target_list: list[float] = np.asarray(targets, dtype=float).tolist()
         force_list: list[float] = _float_list(forces)
         gain = float(position_gain)
+        if self.timestep != GAIN_TIMESTEP:
+            gain = 1.0 - (1.0 - gain) ** (self.timestep / GAIN_TIMESTEP)
         if max_velocities is None:
             for j, t, f in zip(joints, target_list, force_list, strict=True):
                 control(body, j, mode, targetPosition=t, force=f, positionGain=gain)

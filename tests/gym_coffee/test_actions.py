@@ -173,6 +173,25 @@ def test_fast_physics_preset_keeps_the_control_period():
         default.close()
 
 
+def test_joint_response_per_control_step_does_not_depend_on_the_physics_step():
+    """The position controller's gain is set per 4 ms of simulated time, so 5 physics steps of
+    8 ms move the joints about as far per control step as 10 of 4 ms (0.015 rad apart after a
+    0.05 rad step on every joint; 0.053 with PyBullet's gain per physics step unconverted)."""
+    moved = []
+    for physics in ("default", "fast"):
+        env = CoffeeEnv(physics=physics)
+        try:
+            q0 = obs_part(env.reset(seed=3)[0], "joint_pos")
+            step = np.array([1, -1, 1, -1, 1, -1, 1, 1], dtype=np.float32)
+            hold = np.array([0, 0, 0, 0, 0, 0, 0, 1], dtype=np.float32)
+            path = [obs_part(env.step(a)[0], "joint_pos") - q0 for a in (step, step, hold, hold)]
+            moved.append(np.array(path))
+        finally:
+            env.close()
+    assert np.abs(moved[0][1]).max() > 0.09  # the joints did move two steps of 0.05 rad
+    assert np.abs(moved[0] - moved[1]).max() < 0.025
+
+
 def test_small_and_odd_render_sizes_work():
     env = CoffeeEnv(render_mode="rgb_array", width=1, height=3)
     try:
