@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import gym_coffee
+
 ROOT = Path(__file__).resolve().parents[1]
 THREAD_VARIABLES = (
     "OMP_NUM_THREADS",
@@ -55,37 +57,13 @@ def run_cli(
     level: str = "easy",
     physics: str = "default",
 ) -> tuple[dict, float, float]:
-    """``gym-coffee run`` in a subprocess with no thread variables; (results, wall, CPU).
-
-    With ``physics`` other than ``"default"`` the subprocess runs the same pipeline
-    (:func:`lgp_policy.app.pipeline.run_pipeline`) with ``env_kwargs={"physics": physics}``
-    (the CLI has no such flag)."""
+    """``gym-coffee run --physics PHYSICS`` in a subprocess with no thread variables; (results,
+    wall, CPU)."""
     env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-    if physics == "default":
-        cmd = [
-            sys.executable,
-            "-m",
-            "lgp_policy.app.cli",
-            "run",
-            "--out",
-            str(out),
-            "--episodes",
-            str(episodes),
-            "--demos",
-            str(demos),
-            "--workers",
-            str(workers),
-            "--level",
-            level,
-        ]
-    else:
-        code = (
-            "from lgp_policy.app.pipeline import run_pipeline; "
-            f"run_pipeline({str(out)!r}, n_episodes={episodes}, n_demos={demos}, "
-            f"workers={workers}, env_id={level!r}, env_kwargs={{'physics': {physics!r}}})"
-        )
-        cmd = [sys.executable, "-c", code]
+    cmd = [sys.executable, "-m", "lgp_policy.app.cli", "run", "--out", str(out)]
+    cmd += ["--episodes", str(episodes), "--demos", str(demos), "--workers", str(workers)]
+    cmd += ["--level", level, "--physics", physics]
     cpu, wall = _children_cpu(), time.perf_counter()
     subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     wall, cpu = time.perf_counter() - wall, _children_cpu() - cpu
@@ -199,8 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--physics",
         default="default",
-        choices=["default", "fast"],
-        help="the env's physics preset (gym_coffee.env.PHYSICS_PRESETS)",
+        choices=list(gym_coffee.PHYSICS_PRESETS),
+        help="the env's physics preset (gym_coffee.PHYSICS_PRESETS)",
     )
     p.add_argument("--keep", default=None, help="keep the run's folder here")
     args = p.parse_args(argv)

@@ -159,9 +159,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--physics",
-        choices=["default", "fast"],
+        choices=list(gym_coffee.PHYSICS_PRESETS),
         default="default",
-        help="the env's physics preset (gym_coffee.env.PHYSICS_PRESETS)",
+        help="the env's physics preset (gym_coffee.PHYSICS_PRESETS)",
     )
     parser.add_argument("--video", type=Path, default=None, help="write one demo (.mp4/.gif)")
     parser.add_argument("--frames", type=Path, default=None, help="folder for PNG stills")
