@@ -679,6 +679,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     ap.add_argument("--report", action="store_true", help="only rewrite results.md from the JSON")
     ap.add_argument(
+        "--force",
+        action="store_true",
+        help="start anew in an --out that has a results.json (its cells are replaced)",
+    )
+    ap.add_argument(
         "--merge",
         type=Path,
         nargs="*",
@@ -723,6 +728,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         )
 
     out: Path = args.out
+    if (out / "results.json").exists() and not (args.resume or args.report or args.force):
+        ap.error(
+            f"--out: {out}/results.json exists; --resume continues it, --report rewrites its "
+            "tables, --force starts anew"
+        )
     rows = load_results(out) if (args.resume or args.report) else {}
     meta: dict[str, Any] = {
         "command": "python benchmarks/lfd_success.py "
