@@ -115,6 +115,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--demos", type=int, default=4)
     ap.add_argument("--curve-episodes", type=int, default=10)
     ap.add_argument("--eval-freq", type=int, default=10_000)
+    ap.add_argument(
+        "--keep-best",
+        action="store_true",
+        help="keep each seed's policy of its best learning-curve point (the curve layouts are "
+        "disjoint from the held-out layouts of the table)",
+    )
     ap.add_argument("--backend", choices=("local", "ray"), default="local")
     ap.add_argument("--out", type=Path, default=Path("runs/residual_press"))
     ap.add_argument(
@@ -180,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
             "gate_start": args.gate_start,
             "eval_episodes": args.curve_episodes,
             "eval_freq": args.eval_freq,
+            "keep_best": args.keep_best,
             "checkpoint_freq": max(budget // 2, 1),
             "n_envs": 1,
             "calibration_bias": bias,

@@ -148,6 +148,12 @@ def add_finetune_subcommand(subparsers: argparse._SubParsersAction) -> argparse.
         help="env steps between learning-curve points (0: start and end only; default: 10000)",
     )
     p.add_argument(
+        "--keep-best",
+        action="store_true",
+        help="save the policy of the learning-curve point with the highest task success on the "
+        "curve layouts (the start's included) instead of the last one",
+    )
+    p.add_argument(
         "--checkpoint-freq",
         type=_non_negative,
         default=25_000,
@@ -385,6 +391,7 @@ class FinetuneJob:
                 reward_fn=make_reward_fn(s["reward"], s["algo"]),
                 evaluate=_CurveEvaluation(env_fn, s["eval_episodes"]),
                 eval_freq=s["eval_freq"],
+                keep_best=bool(s.get("keep_best", False)),
                 checkpoint_freq=s["checkpoint_freq"],
                 n_envs=s["n_envs"],
                 out_dir=out,
@@ -503,6 +510,7 @@ def run_finetune(args: argparse.Namespace) -> int:
         "gate_start": args.gate_start,
         "eval_episodes": args.eval_episodes,
         "eval_freq": args.eval_freq,
+        "keep_best": args.keep_best,
         "checkpoint_freq": args.checkpoint_freq,
         "n_envs": args.n_envs,
         "calibration_bias": args.calibration_bias,
@@ -513,9 +521,13 @@ def run_finetune(args: argparse.Namespace) -> int:
     summaries = run_jobs(jobs, out, backend=args.backend, address=args.address)
     for seed, summary in summaries.items():
         first, last = summary["curve"][0], summary["curve"][-1]
+        kept_steps = summary.get("kept_env_steps")
+        if kept_steps is not None:  # --keep-best: the saved policy is that curve point's
+            last = next(c for c in summary["curve"] if c["env_steps"] == kept_steps)
         print(
             f"seed {seed}: {summary['env_steps']} env steps ({summary['agent_steps']} agent "
             f"steps), {summary['wall_time_s']:.0f} s wall, {summary['cpu_time_s']:.0f} s CPU"
+            + ("" if kept_steps is None else f"; kept the policy of env step {kept_steps}")
         )
         print(f"{'stage':<19}{'base':>8}{'fine-tuned':>12}   ({last['episodes']} held-out layouts)")
         for key, value in last["rates"].items():

@@ -63,6 +63,8 @@ class FinetuneResult:
     wall_time_s: float = 0.0
     cpu_time_s: float = 0.0
     out_dir: Path | None = None
+    #: With ``keep_best``: the env steps of the curve point whose policy was kept.
+    kept_env_steps: int | None = None
 
 
 class _WrappedEnvFactory:
@@ -101,6 +103,7 @@ def finetune(
     hyperparameters: Mapping[str, Any] | None = None,
     evaluate: Evaluate | None = None,
     eval_freq: int = 10_000,
+    keep_best: bool = False,
     checkpoint_freq: int = 25_000,
     out_dir: str | Path | None = None,
     force: bool = False,
@@ -125,6 +128,10 @@ def finetune(
             bonus once per stage change, +1 on reaching a stage and -1 on losing one).
         evaluate, eval_freq: the learning curve: ``evaluate(policy)`` at the start, every
             ``eval_freq`` env steps and at the end (its steps are not counted in the budget).
+        keep_best: return and save the policy of the curve point with the highest
+            ``rates["is_success"]`` (the latest of equals; the start's, before any update, is a
+            candidate) instead of the last one: model selection on ``evaluate``'s layouts, which
+            must then be disjoint from those the result is judged on. Needs ``evaluate``.
         checkpoint_freq: every that many env steps a checkpoint ``checkpoints/step_<N>.npz``
             (a full policy file, base embedded).
         out_dir: where ``residual_policy.npz``, ``learning_curve.json`` and the checkpoints go
@@ -144,6 +151,8 @@ def finetune(
     for name, value in (("eval_freq", eval_freq), ("checkpoint_freq", checkpoint_freq)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise ValueError(f"{name} must be an integer >= 0 (0: never), got {value!r}")
+    if keep_best and evaluate is None:
+        raise ValueError("keep_best needs evaluate (the learning curve it selects on)")
     hp = resolve_hyperparameters(algo, hyperparameters)
     check_hyperparameters(algo, hp)
     gate = gate if gate is not None else PhaseGate()
@@ -196,6 +205,7 @@ def finetune(
         obs_normalizer=normalizer,
     )
     curve: list[dict[str, Any]] = []
+    kept: dict[str, Any] = {}  # keep_best: the best curve point's score, steps, weights, normaliser
 
     def record(env_steps: int) -> None:
         if evaluate is None:
@@ -204,6 +214,15 @@ def finetune(
         entry["env_steps"] = env_steps
         entry["wall_time_s"] = time.perf_counter() - t0
         curve.append(entry)
+        score = float(entry["rates"]["is_success"]) if keep_best else 0.0
+        if keep_best and score >= kept.get("score", -1.0):
+            norm = policy.obs_normalizer
+            kept.update(
+                score=score,
+                env_steps=env_steps,
+                weights={k: v.detach().clone() for k, v in model.policy.state_dict().items()},
+                normalizer=norm.freeze() if isinstance(norm, _LiveNormalizer) else norm,
+            )
 
     class _Progress(BaseCallback):
         """Counts env steps, updates the bar, evaluates, checkpoints, stops at the budget."""
@@ -254,6 +273,9 @@ def finetune(
         vec_env.close()
     if isinstance(policy.obs_normalizer, _LiveNormalizer):
         policy.obs_normalizer = policy.obs_normalizer.freeze()
+    if keep_best:
+        model.policy.load_state_dict(kept["weights"])
+        policy.obs_normalizer = kept["normalizer"]
     result = FinetuneResult(
         policy=policy,
         curve=curve,
@@ -262,6 +284,7 @@ def finetune(
         wall_time_s=time.perf_counter() - t0,
         cpu_time_s=time.process_time() - c0,
         out_dir=out,
+        kept_env_steps=kept.get("env_steps"),
     )
     if out is not None:
         policy.save(out / "residual_policy.npz", force=force)
@@ -278,6 +301,7 @@ def finetune(
             "hyperparameters": hp,
             "reward_fn": "env reward" if reward_fn is None else repr(reward_fn),
             "curve": curve,
+            "kept_env_steps": result.kept_env_steps,
         }
         atomic_write_text(out / "learning_curve.json", json.dumps(summary, indent=2), force=True)
     return result

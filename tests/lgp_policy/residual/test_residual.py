@@ -302,3 +302,45 @@ def test_press_phase_start_from_the_demonstrations_stage_phases():
     assert _press_phase_start(object()) == pytest.approx(0.8)
     gate = make_gate(Reported())
     assert gate.source == "policy" and gate.start == pytest.approx(0.75)
+
+
+def test_keep_best_returns_and_saves_the_best_curve_point(tmp_path):
+    """``keep_best``: the policy of the curve point with the highest success (here the middle
+    one of three, scored by a scripted curve) is returned and saved, with its normaliser; it
+    equals that step's checkpoint, not the last state."""
+    scores = iter([0.5, 1.0, 0.2, 0.2])
+
+    def curve(policy):
+        return {"episodes": 1, "rates": {"is_success": next(scores)}}
+
+    with pytest.raises(ValueError, match="keep_best needs evaluate"):
+        finetune(PendulumPD(), make_pendulum, total_env_steps=10, keep_best=True, progress=False)
+    result = finetune(
+        PendulumPD(),
+        make_pendulum,
+        total_env_steps=300,
+        seed=2,
+        gate=PhaseGate(start=0.0, ramp=0.0),
+        evaluate=curve,
+        eval_freq=150,
+        keep_best=True,
+        checkpoint_freq=150,
+        out_dir=tmp_path / "run",
+        hyperparameters={"batch_size": 32, "learning_starts": 20},
+        progress=False,
+    )
+    run = tmp_path / "run"
+    assert [c["env_steps"] for c in result.curve][:2] == [0, 150]
+    assert result.kept_env_steps == 150
+    assert json.loads((run / "learning_curve.json").read_text())["kept_env_steps"] == 150
+    obs = np.stack([make_pendulum().observation_space.sample() for _ in range(32)])
+    obs[:, TIME_INDEX] = np.linspace(0, 1, 32)
+    saved = ResidualPolicy.load(run / "residual_policy.npz", base=PendulumPD())
+    at_150 = ResidualPolicy.load(run / "checkpoints" / "step_0000150.npz", base=PendulumPD())
+    got, _ = saved.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(got, at_150.predict(obs, deterministic=True)[0])
+    np.testing.assert_array_equal(result.policy.predict(obs, deterministic=True)[0], got)
+    last = sorted((run / "checkpoints").iterdir())[-1]
+    assert last.name != "step_0000150.npz"  # training went on past the kept point
+    later = ResidualPolicy.load(last, base=PendulumPD()).predict(obs, deterministic=True)[0]
+    assert not np.array_equal(later, got)
