@@ -45,6 +45,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import os
@@ -61,6 +62,7 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 import numpy as np
 import scipy.optimize
 
+from lgp_policy._io import atomic_write_bytes, atomic_write_text, check_output_path
 from lgp_policy.gp.exact import GaussianProcess
 from lgp_policy.gp.kernels import SquaredExponential, WhiteNoise
 from lgp_policy.gp.local import DEFAULT_COMBINE, LocalGP
@@ -438,7 +440,7 @@ def check_targets_for(rows: list[dict], inputs: str, top: int) -> None:
         )
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(rows: list[dict], path: Path, *, force: bool = False) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
@@ -467,7 +469,9 @@ def plot(rows: list[dict], path: Path) -> None:
     axes[0].legend(fontsize=8)
     fig.suptitle("GP scaling (cf. paper Fig. 6c/6d); hollow dashed = extrapolated", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120)
+    atomic_write_bytes(path, buf.getvalue(), force=force)
     print(f"\nwrote {path}")
 
 
@@ -503,9 +507,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--no-sklearn", action="store_true")
     parser.add_argument("--no-celerite", action="store_true")
-    parser.add_argument("--png", type=Path, default=Path("gp_scaling.png"))
-    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--png", type=Path, default=None, help="also plot the timings here")
+    parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    parser.add_argument("--force", action="store_true", help="overwrite --png / --json")
     args = parser.parse_args(argv)
+    for option, path, suffix in (("--png", args.png, ".png"), ("--json", args.json, ".json")):
+        if path is not None:
+            try:
+                check_output_path(path, force=args.force, suffixes=(suffix,))
+            except (ValueError, FileExistsError) as exc:
+                parser.error(f"argument {option}: {exc}")
     if args.sizes is None:
         args.sizes = (
             [100, 400, 1000]
@@ -523,8 +534,9 @@ def main(argv: list[str] | None = None) -> int:
     print_side_by_side(rows)
     check_targets(rows, top=8000 if 8000 in args.sizes else max(args.sizes))
     if args.json is not None:
-        args.json.write_text(json.dumps(rows, indent=1))
-    plot(rows, args.png)
+        atomic_write_text(args.json, json.dumps(rows, indent=1), force=args.force)
+    if args.png is not None:
+        plot(rows, args.png, force=args.force)
     return 0
 
 
