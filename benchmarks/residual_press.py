@@ -124,6 +124,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backend", choices=("local", "ray"), default="local")
     ap.add_argument("--out", type=Path, default=Path("runs/residual_press"))
     ap.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the seeds' runs and results file of an earlier run in --out",
+    )
+    ap.add_argument(
         "--runs",
         type=Path,
         default=None,
@@ -145,6 +150,14 @@ def main(argv: list[str] | None = None) -> int:
         finished[seed] = json.loads(curve_file.read_text())
         if finished[seed]["algo"] != args.algo:
             ap.error(f"argument --runs: {curve_file.parent} is a {finished[seed]['algo']} run")
+    bias = args.calibration_bias
+    results_file = args.out / f"results-{'-'.join(map(str, seeds))}.json"
+    earlier = [results_file] if results_file.exists() else []
+    if args.runs is None:
+        runs_dir = args.out / f"bias{bias * 1e3:g}mm-{args.algo}"
+        earlier += [runs_dir / f"seed{s}" for s in seeds if (runs_dir / f"seed{s}").exists()]
+    if earlier and not args.force:
+        ap.error(f"argument --out: {earlier[0]} exists (an earlier run); --force replaces it")
 
     import torch
     from threadpoolctl import threadpool_limits
@@ -167,7 +180,6 @@ def main(argv: list[str] | None = None) -> int:
     base_path = args.policy or _fit_base(args.out, args.demos)
     base = GPDemonstrationPolicy.load(base_path)
     test_seeds = [EVAL_SEED_OFFSET + i for i in range(n_eval)]
-    bias = args.calibration_bias
     print(f"base policy {base_path}; gate {make_gate(base, args.gate_start).to_config()}")
     t0 = time.perf_counter()
     plain = _cached_eval(args.out, base_path, 0.0, test_seeds, base)["rates"]
@@ -195,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         jobs = [FinetuneJob(base_path.read_bytes(), seed, settings) for seed in seeds]
         t0 = time.perf_counter()
-        runs = args.out / f"bias{bias * 1e3:g}mm-{args.algo}"
+        runs = runs_dir
         summaries = run_jobs(jobs, runs, backend=args.backend)
         print(f"fine-tuned {len(seeds)} seed(s) in {time.perf_counter() - t0:.0f} s wall")
     results: dict[str, object] = {
@@ -241,9 +253,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(f"\n=== summary: {args.algo}, calibration bias {bias * 1e3:g} mm, {n_eval} layouts")
     print(_table(rows, n_eval))
-    name = f"results-{'-'.join(map(str, seeds))}.json"
-    (args.out / name).write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.out / name}")
+    results_file.write_text(json.dumps(results, indent=2))
+    print(f"wrote {results_file}")
     return 0 if ok else 1
 
 

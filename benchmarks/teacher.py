@@ -56,6 +56,11 @@ def outcome(demo: Demonstration, max_steps: int | None) -> str:
     return "failure (cup tipped / off table)"
 
 
+def _level_path(save: Path, level: str) -> Path:
+    """``--save``'s file for one level: ``NAME_<level>.npz``."""
+    return save.with_name(f"{save.stem}_{level}{save.suffix}")
+
+
 def save_frames(env_id: str, demo: Demonstration, folder: Path) -> list[Path]:
     """PNG stills of ``demo`` replayed: start, grasped, placed, pressed, end."""
     import imageio.v3 as iio
@@ -103,9 +108,7 @@ def report(level: str, env_id: str, args: argparse.Namespace) -> tuple[list[Demo
     cpu = time.process_time() - cpu0
     n = len(demos)
     if args.save is not None:
-        demos.save(
-            args.save.with_name(f"{args.save.stem}_{level}{args.save.suffix}"), overwrite=True
-        )
+        demos.save(_level_path(args.save, level), overwrite=args.force)
 
     reached = np.array([d.stages.any(axis=0) for d in demos])  # (n, 3) stage ever reached
     success = np.array([d.success for d in demos])
@@ -168,7 +171,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--save", type=Path, default=None, help="also save all episodes (.npz, one per level)"
     )
+    parser.add_argument("--force", action="store_true", help="overwrite --save/--video/--frames")
     args = parser.parse_args(argv)
+    existing = [args.video] if args.video is not None and args.video.exists() else []
+    if args.save is not None:
+        existing += [p for level in args.levels if (p := _level_path(args.save, level)).exists()]
+    if args.frames is not None and args.frames.is_dir():
+        existing += sorted(args.frames.glob("teacher_seed*.png"))[:1]
+    if existing and not args.force:
+        parser.error(f"{existing[0]} exists; pass --force to overwrite")
 
     rates = {}
     first: tuple[str, list[Demonstration]] | None = None
@@ -189,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.video is not None:
             from lgp_policy.app.cli import record_video
 
-            path = record_video(env_id, demo, args.video)
+            path = record_video(env_id, demo, args.video, overwrite=args.force)
             print(f"wrote {path} (replay of seed {demo.seed}, {demo.n_steps} steps)")
         if args.frames is not None:
             for path in save_frames(env_id, demo, args.frames):
