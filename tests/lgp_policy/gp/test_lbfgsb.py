@@ -105,13 +105,13 @@ def test_a_changed_routine_fails_the_self_check_and_the_results_stay(monkeypatch
         assert value == ref.fun
 
 
-@pytest.mark.parametrize("driver_ok", [True, False])
-def test_ftol_is_scipys_ftol(monkeypatch, driver_ok):
+@pytest.mark.parametrize("path", ["direct", "fallback"])
+def test_ftol_is_scipys_ftol(monkeypatch, path):
     """A looser ``ftol`` (the EM's searches) ends where ``minimize`` with that option ends,
-    with the direct driver and with the fallback, and stops sooner than the default."""
-    if driver_ok and _lbfgsb._SETULB is None:
-        pytest.skip("the direct driver is not available on this scipy")
-    monkeypatch.setattr(_lbfgsb, "_driver_ok", driver_ok)
+    with the direct driver (where this scipy has it: see
+    ``test_the_self_check_passes_on_a_checked_scipy``; else the fallback again) and with the
+    fallback, and stops sooner than the default."""
+    monkeypatch.setattr(_lbfgsb, "_driver_ok", path == "direct" and _lbfgsb._SETULB is not None)
     rng = np.random.default_rng(5)
     funcs = [_problem(rng) for _ in range(6)]
     bounds = [np.array([[-1.0, 2.0], [-0.5, 0.5], [-3.0, 3.0]])] * len(funcs)
