@@ -65,6 +65,8 @@ NOISE_BOUNDS = (1e-3, 10.0)
 deviation of the training targets. The lower end is the floor that keeps the noise model
 well posed where demonstrations coincide exactly (zero spread: the squared residuals are 0 and
 their log is ``-inf``); the upper end keeps ``exp(z)`` finite wherever the z-process goes."""
+LOG_NOISE_BOUNDS = (2 * math.log(NOISE_BOUNDS[0]), 2 * math.log(NOISE_BOUNDS[1]))
+""":data:`NOISE_BOUNDS` as bounds of ``log r`` (the noise variance), in the targets' units."""
 
 __all__ = [
     "DEFAULT_METHOD",
@@ -246,10 +248,7 @@ def most_likely_em(
     max_iter: int = 200,
     random_state: int | np.random.Generator | None = None,
     refit_kernel: Kernel | None = None,
-    log_noise_bounds: tuple[float, float] = (
-        2 * math.log(NOISE_BOUNDS[0]),
-        2 * math.log(NOISE_BOUNDS[1]),
-    ),
+    log_noise_bounds: tuple[float, float] = LOG_NOISE_BOUNDS,
     noise_offset: float | None = None,
 ) -> EMResult:
     """Most-likely heteroscedastic EM (Kersting et al. 2007) on one or more data sets.
@@ -315,10 +314,7 @@ def most_likely_em_many(
     max_iter: int = 200,
     random_state: int | np.random.Generator | None = None,
     refit_kernel: Kernel | None = None,
-    log_noise_bounds: tuple[float, float] = (
-        2 * math.log(NOISE_BOUNDS[0]),
-        2 * math.log(NOISE_BOUNDS[1]),
-    ),
+    log_noise_bounds: tuple[float, float] = LOG_NOISE_BOUNDS,
     noise_offset: float | None = None,
 ) -> list[EMResult]:
     """Independent :func:`most_likely_em` runs, one per entry of ``problems`` (each a list of

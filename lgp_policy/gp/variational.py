@@ -60,6 +60,7 @@ from lgp_policy.gp.exact import (
     fit_shared_hyperparameters,
 )
 from lgp_policy.gp.heteroscedastic import (
+    LOG_NOISE_BOUNDS,
     OBJECTIVE_TOL,
     EMResult,
     _signal_length_scale,
@@ -188,7 +189,7 @@ def variational_heteroscedastic(
     collapse_replicates: bool = True,
     random_state: int | np.random.Generator | None = None,
     refit_kernel: Kernel | None = None,
-    log_noise_bounds: tuple[float, float] = (2 * math.log(1e-3), 2 * math.log(10.0)),
+    log_noise_bounds: tuple[float, float] = LOG_NOISE_BOUNDS,
     noise_offset: float | None = None,
     **_em_only: Any,
 ) -> EMResult:
