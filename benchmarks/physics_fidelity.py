@@ -40,16 +40,17 @@ from gym_coffee.env import obs_part
 from gym_coffee.teacher import ScriptedTeacher
 
 #: The reference physics: (physics time step (s), physics steps per control step, iterations).
-REFERENCE = (0.001, 40, 100)
+REFERENCE = (0.001, 40, 100, 1e-7)
 #: Gripper opening (m) below which the fingers count as closing on the cup (fully open: 0.08).
 GRIPPER_CLOSING = 0.079
 
 
-def run_level(level: str, setting: tuple[float, int, int], episodes: int, seed: int) -> dict:
+def run_level(level: str, setting: tuple[float, int, int, float], episodes: int, seed: int) -> dict:
     """Teacher episodes on ``level`` with the physics ``setting``; per-episode records."""
     env = gym.make(gym_coffee.LEVELS[level])
     sim = env.unwrapped.sim
-    sim.timestep, sim.n_substeps, sim.solver_iterations = setting  # applied at every reset
+    # applied at every reset
+    sim.timestep, sim.n_substeps, sim.solver_iterations, sim.solver_residual = setting
     records: list[dict[str, Any]] = []
     cpu, steps = 0.0, 0
     for episode in range(episodes):
@@ -103,15 +104,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=8, help="layouts per level")
     p.add_argument("--levels", default=",".join(gym_coffee.LEVELS))
     p.add_argument("--seed", type=int, default=500, help="first layout seed")
+    p.add_argument(
+        "--residual",
+        type=float,
+        nargs="*",
+        default=[],
+        help="also the default preset with these solver residual thresholds (Simulation's "
+        "solver_residual, PyBullet's solverResidualThreshold)",
+    )
     args = p.parse_args(argv)
     levels = args.levels.split(",")
     bad = [lv for lv in levels if lv not in gym_coffee.LEVELS]
-    if bad or args.episodes < 1:
-        p.error(f"--levels must name levels of {list(gym_coffee.LEVELS)}, --episodes >= 1")
+    if bad or args.episodes < 1 or not all(0.0 < r < 1.0 for r in args.residual):
+        p.error(
+            f"--levels must name levels of {list(gym_coffee.LEVELS)}, --episodes >= 1, "
+            "--residual values in (0, 1)"
+        )
     settings = {"reference (1 ms x 40, 100 it.)": REFERENCE}
     for name, setting in gym_coffee.PHYSICS_PRESETS.items():
-        dt, n, iterations = setting
-        settings[f"{name} ({1e3 * dt:g} ms x {n}, {iterations} it.)"] = setting
+        dt, n, iterations, residual = setting
+        settings[f"{name} ({1e3 * dt:g} ms x {n}, {iterations} it., res. {residual:g})"] = setting
+    dt, n, iterations = gym_coffee.PHYSICS_PRESETS["default"][:3]
+    for residual in args.residual:
+        settings[f"default, res. {residual:g}"] = (dt, n, iterations, residual)
     print(f"scripted teacher, {args.episodes} layouts per level from seed {args.seed}")
     print()
     print(

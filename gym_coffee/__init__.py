@@ -24,12 +24,14 @@ ENV_IDS: list[str] = list(LEVELS.values())
 #: ``info["is_success"]`` is the whole task (pressed while the cup stands placed).
 STAGES: tuple[str, ...] = ("cup_grasped", "cup_placed", "button_pressed")
 #: ``physics`` presets of ``CoffeeEnv``: (physics time step (s), physics steps per control step,
-#: solver iterations). ``"default"`` is the task's physics; ``"fast"`` (5 physics steps of 8 ms, 20
+#: solver iterations, solver residual threshold: ``Simulation``'s ``solver_residual``, PyBullet's
+#: ``solverResidualThreshold``, the squared velocity correction below which the solver stops
+#: iterating early). ``"default"`` is the task's physics; ``"fast"`` (5 physics steps of 8 ms, 20
 #: solver iterations; the same 40 ms control period) makes ``env.step`` ~40% cheaper but gives
 #: other trajectories (see docs/design-env.md, "Physics settings").
-PHYSICS_PRESETS: dict[str, tuple[float, int, int]] = {
-    "default": (1.0 / 250.0, 10, 50),
-    "fast": (1.0 / 125.0, 5, 20),
+PHYSICS_PRESETS: dict[str, tuple[float, int, int, float]] = {
+    "default": (1.0 / 250.0, 10, 50, 1e-7),
+    "fast": (1.0 / 125.0, 5, 20, 1e-7),
 }
 
 for _level, _env_id in LEVELS.items():

@@ -370,7 +370,7 @@ class CoffeeEnv(gym.Env, EzPickle):
         self.cup_push = self._check_cup_push(cup_push)
         self.physics = check_choice("physics", physics, list(PHYSICS_PRESETS))
 
-        timestep, n_substeps, iterations = PHYSICS_PRESETS[self.physics]
+        timestep, n_substeps, iterations, residual = PHYSICS_PRESETS[self.physics]
         # Headless frames without shadows composite the bodies that stand still (floor, table,
         # the machine's housing) from a backdrop (Simulation.render: the same pixels, ~3x faster).
         static = CoffeeScene.STATIC_BODIES if not self.render_shadows else ()
@@ -379,6 +379,7 @@ class CoffeeEnv(gym.Env, EzPickle):
             timestep=timestep,
             n_substeps=n_substeps,
             solver_iterations=iterations,
+            solver_residual=residual,
             static_bodies=static,
         )
         self.robot = Panda(self.sim)

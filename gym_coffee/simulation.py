@@ -65,7 +65,10 @@ class Simulation:
         render_mode: ``"human"`` opens the PyBullet GUI; anything else runs headless (``DIRECT``).
         timestep: physics time step (s).
         n_substeps: physics steps per :meth:`step`.
-        solver_iterations: constraint-solver iterations per physics step.
+        solver_iterations: constraint-solver iterations per physics step (at most).
+        solver_residual: PyBullet's ``solverResidualThreshold``: the solver stops iterating once
+            the square of the largest velocity correction (m/s, rad/s) of a sweep over the
+            constraints is below it. PyBullet's default, 1e-7, runs every iteration here.
         static_bodies: bodies whose base link never moves while frames are drawn (e.g. the
             floor, a table): headless frames composite them from a backdrop (see :meth:`render`).
     """
@@ -77,6 +80,7 @@ class Simulation:
         timestep: float = 1.0 / 250.0,
         n_substeps: int = 10,
         solver_iterations: int = 50,
+        solver_residual: float = 1e-7,
         static_bodies: Sequence[str] = (),
     ) -> None:
         self.render_mode = render_mode
@@ -90,6 +94,7 @@ class Simulation:
         self.timestep = float(timestep)
         self.n_substeps = int(n_substeps)
         self.solver_iterations = int(solver_iterations)
+        self.solver_residual = float(solver_residual)
         self.bodies: dict[str, int] = {}
         #: Offset of each base's inertial frame from its URDF frame (None where they coincide).
         self._inertial_offset: dict[str, NDArray[np.float64] | None] = {}
@@ -141,6 +146,7 @@ class Simulation:
             fixedTimeStep=self.timestep,
             numSubSteps=0,
             numSolverIterations=self.solver_iterations,
+            solverResidualThreshold=self.solver_residual,
             deterministicOverlappingPairs=1,
         )
         self.bodies.clear()
