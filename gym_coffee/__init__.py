@@ -30,7 +30,7 @@ STAGES: tuple[str, ...] = ("cup_grasped", "cup_placed", "button_pressed")
 #: solver iterations; the same 40 ms control period) makes ``env.step`` ~40% cheaper but gives
 #: other trajectories (see docs/design-env.md, "Physics settings").
 PHYSICS_PRESETS: dict[str, tuple[float, int, int, float]] = {
-    "default": (1.0 / 250.0, 10, 50, 1e-7),
+    "default": (1.0 / 250.0, 10, 50, 3e-4),
     "fast": (1.0 / 125.0, 5, 20, 1e-7),
 }
 
