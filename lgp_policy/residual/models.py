@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Mapping
 from typing import Any
 
@@ -137,6 +138,12 @@ def build_model(
         **kwargs,
     )
     zero_init_residual_actor(model, algo, initial_std=hp.get("initial_std"))
+    # SB3's own logger (made at learn() unless one is set) creates an empty SB3-<date> folder in
+    # the system's temporary directory on every call; this one writes nowhere but the console.
+    from stable_baselines3.common.logger import HumanOutputFormat, Logger
+
+    formats = [HumanOutputFormat(sys.stdout)] if verbose >= 1 else []
+    model.set_logger(Logger(folder=None, output_formats=formats))
     return model
 
 

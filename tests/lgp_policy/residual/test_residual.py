@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tempfile
 
 import numpy as np
 import pytest
@@ -213,8 +214,11 @@ def test_warmup_does_not_inject_full_scale_residuals(algo):
     assert np.mean(np.abs(actions)) < 0.35  # uniform warm-up: 0.5
 
 
-def test_tiny_finetune_saves_a_policy_that_loads_and_predicts_identically(tmp_path):
+def test_tiny_finetune_saves_a_policy_that_loads_and_predicts_identically(tmp_path, monkeypatch):
     base = PendulumPD()
+    scratch = tmp_path / "system-tmp"  # the system's temporary directory for this test
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     result = finetune(
         base,
         make_pendulum,
@@ -232,6 +236,8 @@ def test_tiny_finetune_saves_a_policy_that_loads_and_predicts_identically(tmp_pa
     )
     assert result.env_steps >= 300
     assert result.agent_steps < result.env_steps  # ungated steps were skipped
+    # no SB3-<date> log folder left behind (torch may keep its own cache there)
+    assert not [p.name for p in scratch.iterdir() if p.name.startswith("SB3-")]
     assert result.curve[0]["env_steps"] == 0 and len(result.curve) >= 3
     run = tmp_path / "run"
     summary = json.loads((run / "learning_curve.json").read_text())
