@@ -211,7 +211,7 @@ def run_pipeline(
             with stage("plots"):
                 from lgp_policy.app import plots as _plots
 
-                results["files"].update(_plots.make_all(policy, out, episode=first))
+                results["files"].update(_plots.make_all(policy, out, episode=first, force=True))
         if video:
             with stage("video"):
                 try:

@@ -2,7 +2,8 @@
 Fig. 4 (constraint profile per frame), Fig. 5 (a reproduction on a new layout).
 
 matplotlib is imported lazily; the figures are made without pyplot (nothing global changes) and
-drawn by Agg.
+drawn by Agg. Each PNG is written atomically and an existing file is replaced only with
+``force=True`` (``FileExistsError`` otherwise, before any drawing).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lgp_policy._io import atomic_output, check_output_path
 from lgp_policy.lfd.encoding import JOINT_FRAME
 
 __all__ = [
@@ -50,10 +52,11 @@ def _cmap(name: str) -> Any:
     return matplotlib.colormaps[name]
 
 
-def _save(fig: Any, path: str | Path) -> Path:
-    """Save a figure (PNG, 110 dpi)."""
+def _save(fig: Any, path: str | Path, force: bool) -> Path:
+    """Save a figure (PNG, 110 dpi) atomically."""
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    with atomic_output(path, force=force) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     return path
 
 
@@ -74,10 +77,13 @@ def _stage_lines(ax: Any, policy: Any) -> None:
         )
 
 
-def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0) -> Path:
+def plot_constraint_profile(
+    policy: Any, path: str | Path, *, n_std: float = 2.0, force: bool = False
+) -> Path:
     """Fig. 4: per object frame and axis, the demonstrations, the GP mean and a +-2 std band over
     normalised time; tight intervals (the constraint report) are shaded and labelled, demonstrated
     stage times are dotted lines."""
+    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
     frames = [n for n in policy.frame_names_ if n != JOINT_FRAME]
     if not frames:
         frames = [JOINT_FRAME]
@@ -138,7 +144,7 @@ def plot_constraint_profile(policy: Any, path: str | Path, *, n_std: float = 2.0
         "Learned policies relative to the objects' initial poses (cf. Fig. 4)", fontsize=10
     )
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    return _save(fig, path)
+    return _save(fig, path, force)
 
 
 def trace_from_episode(policy: Any, episode: Any) -> dict[str, Any]:
@@ -214,10 +220,11 @@ def rollout_trace(policy: Any, seed: int, *, env_factory: Any = None) -> dict[st
     return trace_from_episode(policy, episode)
 
 
-def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
+def plot_reproduction(policy: Any, trace: dict, path: str | Path, *, force: bool = False) -> Path:
     """Fig. 5: (a) task space, the targets of each object frame (dotted/dashed) and the resulting
     end-effector path (solid red); (b) joint space, the reproduced joints with the remaining
     +-2 std of the fused estimate and the joint-space GP mean."""
+    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
     fig = _figure(figsize=(12, 6.5))
     grid = fig.add_gridspec(3, 2, width_ratios=(1.0, 1.1))
     task_axes = [fig.add_subplot(grid[r, 0]) for r in range(3)]
@@ -264,7 +271,7 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path) -> Path:
     flags = ", ".join(f"{v} {'yes' if reached.get(k) else 'no'}" for k, v in STAGE_LABELS.items())
     fig.suptitle(f"Reproduction on a new layout (cf. Fig. 5): {flags}", fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return _save(fig, path, force)
 
 
 def _pick_dimension(encoder: Any) -> tuple[str, int]:
@@ -287,11 +294,17 @@ def _xy(encoder: Any, name: str, j: int) -> tuple[NDArray[np.float64], NDArray[n
 
 
 def plot_heteroscedastic(
-    encoder: Any, path: str | Path, *, frame: str | None = None, dim: int | None = None
+    encoder: Any,
+    path: str | Path,
+    *,
+    frame: str | None = None,
+    dim: int | None = None,
+    force: bool = False,
 ) -> Path:
     """Fig. 1 on one dimension of the demonstrations: (a) a standard (homoscedastic) GP, (b) the
     encoder's own model (the local heteroscedastic GP the policy uses; +-2 std includes the
     input-dependent noise), (c) the noise models against the demonstrations' spread."""
+    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
     from lgp_policy.gp.exact import GaussianProcess
     from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 
@@ -357,7 +370,7 @@ def plot_heteroscedastic(
     ax.grid(alpha=0.3)
     fig.suptitle("Standard vs heteroscedastic GP on the demonstrations (cf. Fig. 1)", fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return _save(fig, path, force)
 
 
 def plot_clustering(
@@ -367,9 +380,11 @@ def plot_clustering(
     frame: str | None = None,
     dim: int | None = None,
     threshold: float | None = None,
+    force: bool = False,
 ) -> Path:
     """Fig. 2: the input-space clustering of a ``LocalGP`` (Algorithm 1): data coloured by local
     model, the centres (squares) and the weighting functions ``k(x, c_l)``."""
+    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
     from lgp_policy.gp.local import LocalGP
 
     if frame is None or dim is None:
@@ -411,32 +426,48 @@ def plot_clustering(
     ax.legend(fontsize=7, ncol=3, loc="upper left", markerscale=2)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    return _save(fig, path)
+    return _save(fig, path, force)
 
 
 def make_all(
-    policy: Any, out: str | Path, *, seed: int | None = None, episode: Any = None
+    policy: Any,
+    out: str | Path,
+    *,
+    seed: int | None = None,
+    episode: Any = None,
+    force: bool = False,
 ) -> dict[str, str]:
     """Write all four figures into ``out``; returns ``{name: path}``.
 
     Fig. 5 uses ``episode`` (an :class:`~lgp_policy.rollout.Episode` with observations, e.g. the
-    first evaluation layout's) when given, else a roll-out on ``reset(seed=seed)``.
+    first evaluation layout's) when given, else a roll-out on ``reset(seed=seed)``. Existing
+    figures are replaced only with ``force`` (checked for all four before any work).
     """
     out = Path(out)
     if episode is None and seed is None:
         raise ValueError("make_all needs the episode to plot or the seed of one")
-    files = {"fig4_constraints": str(plot_constraint_profile(policy, out / "fig4_constraints.png"))}
+    encoder = getattr(policy, "encoder_", None)
+    names = ["fig4_constraints", "fig5_reproduction"]
+    if encoder is not None:
+        names += ["fig2_clustering", "fig1_heteroscedastic"]
+    paths = {n: check_output_path(out / f"{n}.png", force=force, what="figure") for n in names}
+    files = {
+        "fig4_constraints": str(
+            plot_constraint_profile(policy, paths["fig4_constraints"], force=force)
+        )
+    }
     if episode is not None:
         trace = trace_from_episode(policy, episode)
     else:
         trace = rollout_trace(policy, int(seed))  # type: ignore[arg-type]
     files["fig5_reproduction"] = str(
-        plot_reproduction(policy, trace, out / "fig5_reproduction.png")
+        plot_reproduction(policy, trace, paths["fig5_reproduction"], force=force)
     )
-    encoder = getattr(policy, "encoder_", None)
     if encoder is not None:
-        files["fig2_clustering"] = str(plot_clustering(encoder, out / "fig2_clustering.png"))
+        files["fig2_clustering"] = str(
+            plot_clustering(encoder, paths["fig2_clustering"], force=force)
+        )
         files["fig1_heteroscedastic"] = str(
-            plot_heteroscedastic(encoder, out / "fig1_heteroscedastic.png")
+            plot_heteroscedastic(encoder, paths["fig1_heteroscedastic"], force=force)
         )
     return files

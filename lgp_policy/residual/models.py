@@ -140,9 +140,9 @@ def build_model(
     zero_init_residual_actor(model, algo, initial_std=hp.get("initial_std"))
     # SB3's own logger (made at learn() unless one is set) creates an empty SB3-<date> folder in
     # the system's temporary directory on every call; this one writes nowhere but the console.
-    from stable_baselines3.common.logger import HumanOutputFormat, Logger
+    from stable_baselines3.common.logger import HumanOutputFormat, KVWriter, Logger
 
-    formats = [HumanOutputFormat(sys.stdout)] if verbose >= 1 else []
+    formats: list[KVWriter] = [HumanOutputFormat(sys.stdout)] if verbose >= 1 else []
     model.set_logger(Logger(folder=None, output_formats=formats))
     return model
 

@@ -62,6 +62,17 @@ def test_run_then_evaluate(tmp_path, capsys, monkeypatch):
     # the Fig. 5 trace from the evaluation roll-out is the one a fresh roll-out gives
     fresh = plots.rollout_trace(policy, results["evaluation"]["seeds"][0])
     assert len(fresh["phase"]) == results["evaluation"]["episodes"][0]["length"]
+    # a figure never replaces a file without force, and is written whole
+    fig4 = out / "fig4_constraints.png"
+    before = fig4.read_bytes()
+    with pytest.raises(FileExistsError, match="force"):
+        plots.plot_constraint_profile(policy, fig4)
+    with pytest.raises(FileExistsError, match="force"):
+        plots.make_all(policy, out, seed=3)
+    assert fig4.read_bytes() == before
+    plots.plot_constraint_profile(policy, fig4, force=True)
+    assert fig4.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporary left
 
     js = tmp_path / "eval.json"
     argv = ["evaluate", str(out / "policy.npz"), "--episodes", "2", "--seed", "3"]
