@@ -271,8 +271,8 @@ class CoffeeEnv(gym.Env, EzPickle):
                                     (away from the machine), once, 10-35 steps after the reset
                                     (during the approach), unless the robot touches it already
     ``physics``         ``"default"`` ``"fast"``: 5 physics steps of 8 ms with 20 solver
-                                    iterations per control step instead of 10 of 4 ms with 50
-                                    (``PHYSICS_PRESETS``): ~40% less CPU per step, other
+                                    iterations per control step instead of 10 of 4 ms with up
+                                    to 50 (``PHYSICS_PRESETS``): ~40% less CPU per step, other
                                     trajectories (not comparable with default-physics data)
     ==================  ==========  ===========================================================
 
