@@ -419,20 +419,9 @@ def _map_jobs(
     jobs: Sequence[FinetuneJob], backend: str, address: str | None
 ) -> list[dict[str, bytes]]:
     """The jobs' results, in order: here one after another, or as Ray tasks of 1 CPU each."""
-    from lgp_policy.app import backends
+    from lgp_policy.app.backends import map_tasks
 
-    map_tasks = getattr(backends, "map_tasks", None)
-    if map_tasks is not None:
-        return list(map_tasks(_call, jobs, backend=backend, address=address))
-    # Until lgp_policy.app.backends.map_tasks is on main (branch eval has it): the same, inline.
-    if backend == "local":
-        return [job() for job in jobs]
-    import ray
-
-    if not ray.is_initialized():
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
-    task = ray.remote(num_cpus=1)(_call)
-    return list(ray.get([task.remote(job) for job in jobs]))
+    return map_tasks(_call, jobs, backend=backend, address=address)
 
 
 def run_jobs(
