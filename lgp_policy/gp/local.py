@@ -167,7 +167,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         noise_bounds: tuple[float, float] = NOISE_BOUNDS,
         optimizer: Optimizer = "L-BFGS-B",
         n_restarts: int = 0,
-        max_em_iter: int = 10,
+        max_em_iter: int = 20,
         normalize_y: bool = True,
         random_state: int | np.random.Generator | None = None,
     ) -> None:
