@@ -24,7 +24,7 @@ def _load(name: str):
 
 def test_plain_arrays_2d_learns_the_task_from_arrays():
     ex = _load("plain_arrays_2d")
-    from lgp_policy.gp._base import ConvergenceWarning
+    from lgp_policy.gp import ConvergenceWarning
     from lgp_policy.lfd.demonstrations import TrajectorySet
     from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
