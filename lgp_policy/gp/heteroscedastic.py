@@ -49,6 +49,8 @@ MIN_RESIDUAL_FRACTION = 0.05
 
 #: The EM has converged when its objective changes by less than this many nats per sample.
 OBJECTIVE_TOL = 1e-3
+#: Default limit of EM iterations (``max_em_iter``); see docs/design-gp.md for why 20.
+MAX_EM_ITER = 20
 
 SEARCH_FTOL = 1e-7
 """Relative tolerance on ``-LML`` at which the EM's hyperparameter searches stop (L-BFGS-B's
@@ -70,6 +72,7 @@ LOG_NOISE_BOUNDS = (2 * math.log(NOISE_BOUNDS[0]), 2 * math.log(NOISE_BOUNDS[1])
 
 __all__ = [
     "DEFAULT_METHOD",
+    "MAX_EM_ITER",
     "METHODS",
     "NOISE_BOUNDS",
     "STOPPED_EARLY",
@@ -241,7 +244,7 @@ def most_likely_em(
     learn: bool = True,
     optimizer: Optimizer = "L-BFGS-B",
     n_restarts: int = 0,
-    max_em_iter: int = 20,
+    max_em_iter: int = MAX_EM_ITER,
     tol: float = 0.05,
     n_samples: int | None = None,
     collapse_replicates: bool = True,
@@ -307,7 +310,7 @@ def most_likely_em_many(
     learn: bool = True,
     optimizer: Optimizer = "L-BFGS-B",
     n_restarts: int = 0,
-    max_em_iter: int = 20,
+    max_em_iter: int = MAX_EM_ITER,
     tol: float = 0.05,
     n_samples: int | None = None,
     collapse_replicates: bool = True,
@@ -633,7 +636,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         optimizer: Optimizer = "L-BFGS-B",
         n_restarts: int = 0,
         normalize_y: bool = True,
-        max_em_iter: int = 20,
+        max_em_iter: int = MAX_EM_ITER,
         tol: float = 0.05,
         n_samples: int | None = None,
         collapse_replicates: bool = True,

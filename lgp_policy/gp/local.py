@@ -72,6 +72,7 @@ from lgp_policy.gp.exact import (
 )
 from lgp_policy.gp.heteroscedastic import (
     DEFAULT_METHOD,
+    MAX_EM_ITER,
     NOISE_BOUNDS,
     STOPPED_EARLY,
     HeteroscedasticGP,
@@ -167,7 +168,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         noise_bounds: tuple[float, float] = NOISE_BOUNDS,
         optimizer: Optimizer = "L-BFGS-B",
         n_restarts: int = 0,
-        max_em_iter: int = 20,
+        max_em_iter: int = MAX_EM_ITER,
         normalize_y: bool = True,
         random_state: int | np.random.Generator | None = None,
     ) -> None:
