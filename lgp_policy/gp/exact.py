@@ -34,6 +34,7 @@ from lgp_policy.gp.kernels import (
     Kernel,
     SquaredExponential,
     WhiteNoise,
+    separable_exp_neg_abs_diff,
 )
 
 __all__ = [
@@ -523,8 +524,7 @@ class _StackedLML:
                 up, down = np.exp(u), np.exp(-u)
                 up *= valid  # the padding: zero rows and columns
                 down *= valid
-                K = down[:, :, None] * up[:, None, :]
-                np.minimum(K, up[:, :, None] * down[:, None, :], out=K)
+                K = separable_exp_neg_abs_diff(up, down, up, down)
                 K *= np.exp(theta_p[:, 0])[:, None, None]
                 d = D * inv_l[:, None, None]
                 d *= K

@@ -299,8 +299,21 @@ def _exp_neg_abs_diff(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray
         return None
     c = 0.5 * (lo + hi)
     u, v = x - c, y - c
-    K = np.multiply.outer(np.exp(-u), np.exp(v))
-    np.minimum(K, np.multiply.outer(np.exp(u), np.exp(-v)), out=K)
+    return separable_exp_neg_abs_diff(np.exp(u), np.exp(-u), np.exp(v), np.exp(-v))
+
+
+def separable_exp_neg_abs_diff(
+    exp_u: NDArray[np.float64],
+    exp_neg_u: NDArray[np.float64],
+    exp_v: NDArray[np.float64],
+    exp_neg_v: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """``exp(-|u_i - v_j|) = min(e^-u_i e^v_j, e^u_i e^-v_j)`` from the four exponentials of
+    centred, scaled 1-D inputs ``u`` (..., n) and ``v`` (..., m); leading axes are batch axes.
+    Returns (..., n, m). Where :func:`_exp_neg_abs_diff` and the stacked likelihood of
+    :mod:`lgp_policy.gp.exact` evaluate the exponential kernel as a product."""
+    K = exp_neg_u[..., :, None] * exp_v[..., None, :]
+    np.minimum(K, exp_u[..., :, None] * exp_neg_v[..., None, :], out=K)
     return K
 
 
