@@ -52,6 +52,12 @@ def _cmap(name: str) -> Any:
     return matplotlib.colormaps[name]
 
 
+def _check_png(path: str | Path, force: bool) -> Path:
+    """A figure's path, checked before any drawing (a ``.png`` name; an existing file only with
+    ``force``)."""
+    return check_output_path(path, force=force, suffixes=(".png",), what="figure")
+
+
 def _save(fig: Any, path: str | Path, force: bool) -> Path:
     """Save a figure (PNG, 110 dpi) atomically."""
     path = Path(path)
@@ -83,7 +89,7 @@ def plot_constraint_profile(
     """Fig. 4: per object frame and axis, the demonstrations, the GP mean and a +-2 std band over
     normalised time; tight intervals (the constraint report) are shaded and labelled, demonstrated
     stage times are dotted lines."""
-    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
+    path = _check_png(path, force)
     frames = [n for n in policy.frame_names_ if n != JOINT_FRAME]
     if not frames:
         frames = [JOINT_FRAME]
@@ -224,7 +230,7 @@ def plot_reproduction(policy: Any, trace: dict, path: str | Path, *, force: bool
     """Fig. 5: (a) task space, the targets of each object frame (dotted/dashed) and the resulting
     end-effector path (solid red); (b) joint space, the reproduced joints with the remaining
     +-2 std of the fused estimate and the joint-space GP mean."""
-    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
+    path = _check_png(path, force)
     fig = _figure(figsize=(12, 6.5))
     grid = fig.add_gridspec(3, 2, width_ratios=(1.0, 1.1))
     task_axes = [fig.add_subplot(grid[r, 0]) for r in range(3)]
@@ -304,7 +310,7 @@ def plot_heteroscedastic(
     """Fig. 1 on one dimension of the demonstrations: (a) a standard (homoscedastic) GP, (b) the
     encoder's own model (the local heteroscedastic GP the policy uses; +-2 std includes the
     input-dependent noise), (c) the noise models against the demonstrations' spread."""
-    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
+    path = _check_png(path, force)
     from lgp_policy.gp.exact import GaussianProcess
     from lgp_policy.gp.heteroscedastic import HeteroscedasticGP
 
@@ -384,7 +390,7 @@ def plot_clustering(
 ) -> Path:
     """Fig. 2: the input-space clustering of a ``LocalGP`` (Algorithm 1): data coloured by local
     model, the centres (squares) and the weighting functions ``k(x, c_l)``."""
-    path = check_output_path(path, force=force, suffixes=(".png",), what="figure")
+    path = _check_png(path, force)
     from lgp_policy.gp.local import LocalGP
 
     if frame is None or dim is None:
@@ -450,7 +456,7 @@ def make_all(
     names = ["fig4_constraints", "fig5_reproduction"]
     if encoder is not None:
         names += ["fig2_clustering", "fig1_heteroscedastic"]
-    paths = {n: check_output_path(out / f"{n}.png", force=force, what="figure") for n in names}
+    paths = {n: _check_png(out / f"{n}.png", force) for n in names}
     files = {
         "fig4_constraints": str(
             plot_constraint_profile(policy, paths["fig4_constraints"], force=force)

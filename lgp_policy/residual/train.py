@@ -214,8 +214,10 @@ def finetune(
         entry["env_steps"] = env_steps
         entry["wall_time_s"] = time.perf_counter() - t0
         curve.append(entry)
-        score = float(entry["rates"]["is_success"]) if keep_best else 0.0
-        if keep_best and score >= kept.get("score", -1.0):
+        if not keep_best:
+            return
+        score = float(entry["rates"]["is_success"])
+        if score >= kept.get("score", -1.0):
             norm = policy.obs_normalizer
             kept.update(
                 score=score,
