@@ -67,19 +67,18 @@ def atomic_output(
     untouched.
 
     Args:
-        path: the file to produce. Its folder must exist.
+        path: the file to produce. A missing folder is created (as ``mkdir -p``).
         overwrite: replace an existing ``path``; otherwise an existing one is refused up front.
         suffix: suffix of the temporary file (some writers choose the format from it).
 
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is false.
-        FileNotFoundError: the folder of ``path`` does not exist.
+        OSError: the folder cannot be created (e.g. a part of it is a file).
     """
     path = Path(path)
     refuse_existing(path, overwrite)
     folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"cannot write {path}: folder {folder} does not exist")
+    folder.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=folder)
     os.close(fd)
     tmp = Path(tmp_name)

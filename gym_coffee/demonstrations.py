@@ -478,7 +478,8 @@ class DemonstrationSet(Sequence[Demonstration]):
         interrupted or failed write never leaves a half-written or damaged ``path`` behind.
 
         Args:
-            path: file to write; the name is used as given (no ``.npz`` is appended).
+            path: file to write; the name is used as given (no ``.npz`` is appended); a
+                missing folder is created.
             overwrite: replace an existing file. Without it an existing ``path`` is an error.
 
         Returns:
@@ -486,7 +487,6 @@ class DemonstrationSet(Sequence[Demonstration]):
 
         Raises:
             FileExistsError: ``path`` exists and ``overwrite`` is false.
-            FileNotFoundError: the folder of ``path`` does not exist.
             DemonstrationFormatError: the set is empty.
             TypeError: ``metadata`` is not JSON-serialisable.
         """

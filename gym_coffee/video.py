@@ -112,7 +112,6 @@ def write_video(
                 "writing MP4 needs imageio-ffmpeg: run `pip install imageio-ffmpeg` "
                 "(or write a .gif instead)"
             ) from exc
-    (path.parent if str(path.parent) else Path(".")).mkdir(parents=True, exist_ok=True)
     with atomic_output(path, overwrite=overwrite, suffix=suffix) as tmp:
         if suffix == ".mp4":
             import imageio.v2 as iio2

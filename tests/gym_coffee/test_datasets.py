@@ -237,10 +237,10 @@ def test_export_and_import_command_line(demos, tmp_path, capsys, monkeypatch):
     from lgp_policy.app.cli import main
 
     src = demos.save(tmp_path / "d.npz")
-    h5 = tmp_path / "d.hdf5"
+    h5 = tmp_path / "new" / "d.hdf5"  # outputs may go to folders that do not exist yet
     assert main(["export", str(src), "--format", "robomimic", "--out", str(h5)]) == 0
-    assert main(["import", str(h5), "--out", str(tmp_path / "back.npz")]) == 0
-    assert DemonstrationSet.load(tmp_path / "back.npz") == demos
+    assert main(["import", str(h5), "--out", str(tmp_path / "new2" / "back.npz")]) == 0
+    assert DemonstrationSet.load(tmp_path / "new2" / "back.npz") == demos
     assert main(["export", str(src), "--format", "robomimic", "--out", str(h5)]) == 2
     assert "exists" in capsys.readouterr().err
     root = tmp_path / "m"

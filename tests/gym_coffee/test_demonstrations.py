@@ -159,9 +159,13 @@ def test_unserialisable_metadata_fails_before_touching_disk(demos, tmp_path):
     assert os.listdir(tmp_path) == []
 
 
-def test_missing_folder(demos, tmp_path):
-    with pytest.raises(FileNotFoundError, match="does not exist"):
-        demos.save(tmp_path / "nope" / "d.npz")
+def test_missing_folder_is_created(demos, tmp_path):
+    path = demos.save(tmp_path / "new" / "sub" / "d.npz")
+    assert DemonstrationSet.load(path) == demos
+    assert sorted(os.listdir(path.parent)) == ["d.npz"]  # no temporary file left
+    (tmp_path / "file").write_bytes(b"")
+    with pytest.raises(OSError):  # a file where a folder would have to be
+        demos.save(tmp_path / "file" / "d.npz")
 
 
 def test_empty_set_cannot_be_saved(tmp_path):

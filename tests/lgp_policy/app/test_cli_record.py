@@ -64,7 +64,7 @@ def test_record_one_demo_with_video_then_force(tmp_path, capsys, monkeypatch):
     # The headless renderer takes ~0.15 s a frame: a short video keeps this test fast; the full
     # video path runs in benchmarks/teacher.py --video.
     monkeypatch.setattr(cli, "VIDEO_MAX_FRAMES", 6)
-    out, video = tmp_path / "demos.npz", tmp_path / "demo.gif"
+    out, video = tmp_path / "data" / "demos.npz", tmp_path / "demo.gif"  # data/: a new folder
     args = ["record", "--n", "1", "--seed", "3", "--out", str(out), "--no-progress"]
     assert main([*args, "--video", str(video)]) == 0
     printed = capsys.readouterr().out
