@@ -389,6 +389,12 @@ cli(
     "finetune {nothere.npz} --out {tmp}/ft",
     "{nothere.npz}",
 )
+cli(
+    "finetune-policy-is-demos",
+    "finetune {p_is_demos.npz} --out {tmp}/ft",
+    "argument POLICY: {p_is_demos.npz} is not a readable policy file: {p_is_demos.npz}: missing",
+)
+cli("finetune-policy-text", "finetune {text.npz} --out {tmp}/ft", "POLICY: {text.npz} is not")
 
 # --- the command line: input files ----------------------------------------------------------
 cli("fit-demos-text", "fit {text.npz} --out {tmp}/p.npz", "{text.npz}")

@@ -488,10 +488,12 @@ def run_finetune(args: argparse.Namespace) -> int:
     from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
     base_bytes = base_path.read_bytes()
+    named = io.BytesIO(base_bytes)
+    named.name = str(base_path)  # the errors name the file, not "<in-memory file>"
     try:
-        GPDemonstrationPolicy.load(io.BytesIO(base_bytes))
+        GPDemonstrationPolicy.load(named)
     except ValueError as exc:
-        raise UsageError(f"argument POLICY: {base_path} is not a GP policy file: {exc}") from exc
+        raise UsageError(f"argument POLICY: {exc}") from exc
     settings = {
         "algo": args.algo,
         "timesteps": args.timesteps,

@@ -1712,7 +1712,7 @@ def _read_policy_npz(path: str | os.PathLike[str] | io.BytesIO) -> tuple[str, di
     """The arrays of a policy file, through :func:`lgp_policy._io.read_npz` (known members only,
     sizes checked before decompressing, never unpickled; a path or an in-memory file)."""
     if isinstance(path, io.BytesIO):
-        label = "<embedded policy>"
+        label = str(getattr(path, "name", None) or "<embedded policy>")
         source: Any = path
     else:
         source = Path(path)
