@@ -42,6 +42,8 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+from lgp_policy._io import atomic_write_text  # after the thread variables
+
 STAGES = ("cup_grasped", "cup_placed", "cup_placed_at_end", "button_pressed", "is_success")
 
 
@@ -76,7 +78,7 @@ def _cached_eval(out: Path, base_path: Path, bias: float, seeds: list[int], base
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     if key not in cache:
         cache[key] = evaluate_stages(base, build_env_fn(bias), seeds)
-        cache_path.write_text(json.dumps(cache, indent=2))
+        atomic_write_text(cache_path, json.dumps(cache, indent=2), force=True)  # a cache
     return cache[key]
 
 
@@ -253,7 +255,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(f"\n=== summary: {args.algo}, calibration bias {bias * 1e3:g} mm, {n_eval} layouts")
     print(_table(rows, n_eval))
-    results_file.write_text(json.dumps(results, indent=2))
+    # --force was checked before the work; the file may have appeared since (another run)
+    atomic_write_text(results_file, json.dumps(results, indent=2), force=args.force)
     print(f"wrote {results_file}")
     return 0 if ok else 1
 
