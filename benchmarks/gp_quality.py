@@ -38,7 +38,9 @@ nats on Goldberg's set, whose noise std only doubles over the input range).
 
 Part 3 (``--part coverage``), coverage of held-out demonstrations over many generated sets
 (``smooth_deviations``; not the sets above): separates the calibration mechanism from the
-sampling spread of a single set of 4-5 demonstrations.
+sampling spread of a single set of 4-5 demonstrations, next to a reference without a GP on the
+same folds (``textbook_interval``: the Student-t prediction interval of a new sample per time
+step).
 
 Usage::
 
@@ -131,22 +133,40 @@ def smooth_deviations(seed: int, n_demos: int, grid: str, n_steps: int = 100):
     return np.stack(Ts), np.stack(Ys)
 
 
+def textbook_interval(
+    T_train: np.ndarray, Y_train: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The textbook 95% prediction interval of a new sample, per time step, as a reference that
+    involves no GP: the ``n`` training demonstrations linearly interpolated to the times ``t``,
+    their mean and unbiased std ``s``, half-width ``t_{n-1}(0.975) s sqrt(1 + 1/n)`` (exact for
+    independent Gaussian demonstrations). Returns (mean, half-width)."""
+    from scipy.special import stdtrit
+
+    Yi = np.stack([np.interp(t, tt, yy) for tt, yy in zip(T_train, Y_train, strict=True)])
+    n = Yi.shape[0]
+    half = stdtrit(n - 1, 0.975) * Yi.std(axis=0, ddof=1) * np.sqrt(1.0 + 1.0 / n)
+    return Yi.mean(axis=0), half
+
+
 def coverage_table(n_sets: int, n_steps: int) -> list[str]:
     """95% coverage of held-out demonstrations over ``n_sets`` generated sets per row: its mean,
-    spread over sets, the share of sets inside [0.90, 0.97], and the mean with an extra factor
-    ``sqrt(1 + 1/n)`` (the variance of a mean of n training demonstrations)."""
+    spread over sets, the share of sets inside [0.90, 0.97], the mean with an extra factor
+    ``sqrt(1 + 1/n)`` (the variance of a mean of n training demonstrations), and the same for
+    the textbook interval (:func:`textbook_interval`) on the same folds: how far single sets
+    spread even for an interval that is calibrated by construction."""
     lines = [
         "| demonstrations | grid | mean coverage | sd over sets | min - max | "
-        "sets in [0.90, 0.97] | mean cov. with sqrt(1 + 1/n) |",
-        "|---|---|---|---|---|---|---|",
+        "sets in [0.90, 0.97] | mean cov. with sqrt(1 + 1/n) | textbook: mean cov. | "
+        "textbook: sd over sets | textbook: sets in [0.90, 0.97] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     enc = DemonstrationEncoder(n_steps=n_steps, model="local")
     for n_demos in (4, 5):
         for grid in ("shared", "own"):
-            cov, cov_n = [], []
+            cov, cov_n, cov_t = [], [], []
             for seed in range(n_sets):
                 T, Y = smooth_deviations(seed, n_demos, grid, n_steps)
-                per, per_n = [], []
+                per, per_n, per_t = [], [], []
                 for k in range(n_demos):
                     keep = np.arange(n_demos) != k
                     mean, std = fit_predict_gp(enc._make_model(), T[keep], Y[keep], T[k])
@@ -154,13 +174,18 @@ def coverage_table(n_sets: int, n_steps: int) -> list[str]:
                     err = np.abs(Y[k] - mean)
                     per.append(np.mean(err <= 1.96 * std))
                     per_n.append(np.mean(err <= 1.96 * std * np.sqrt(1 + 1 / (n_demos - 1))))
+                    t_mean, t_half = textbook_interval(T[keep], Y[keep], T[k])
+                    per_t.append(np.mean(np.abs(Y[k] - t_mean) <= t_half))
                 cov.append(np.mean(per))
                 cov_n.append(np.mean(per_n))
-            c = np.array(cov)
+                cov_t.append(np.mean(per_t))
+            c, ct = np.array(cov), np.array(cov_t)
             inside = np.mean((c >= 0.90) & (c <= 0.97))
+            inside_t = np.mean((ct >= 0.90) & (ct <= 0.97))
             lines.append(
                 f"| {n_demos} | {grid} | {c.mean():.3f} | {c.std():.3f} | "
-                f"{c.min():.3f} - {c.max():.3f} | {inside:.0%} | {np.mean(cov_n):.3f} |"
+                f"{c.min():.3f} - {c.max():.3f} | {inside:.0%} | {np.mean(cov_n):.3f} | "
+                f"{ct.mean():.3f} | {ct.std():.3f} | {inside_t:.0%} |"
             )
     return lines
 
