@@ -13,9 +13,9 @@ Measures, in one process and one run, for ``gym_coffee.ENV_ID`` and panda-gym's
 Times are CPU seconds of this process (``time.process_time``; PyBullet's ``DIRECT`` server runs
 in it), so that load from other processes on a shared machine does not count; the two envs are
 also measured alternately, ``--repeats`` times, and the median is reported. gym-coffee's reset
-rebuilds the world (``exact_reset=True``, the default) without visual meshes unless rendering;
-the ``reset, rendering env`` row is the same reset with them. Targets: real-time factor >= 1.5x
-panda-gym's, and >= 400 steps/s.
+restores the world as loaded (``exact_reset=True``, the default; loaded without visual meshes
+unless rendering); the ``reset, rendering env`` row is the same reset in an env with them.
+Targets: real-time factor >= 1.5x panda-gym's, and >= 400 steps/s.
 
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/env_throughput.py [--steps 2000] [--repeats 3]

@@ -53,8 +53,13 @@ def run_level(level: str, setting: tuple[float, int, int, float], episodes: int,
     """Teacher episodes on ``level`` with the physics ``setting``; per-episode records."""
     env = gym.make(gym_coffee.LEVELS[level])
     sim = env.unwrapped.sim
-    # applied at every reset
-    sim.timestep, sim.n_substeps, sim.solver_iterations, sim.solver_residual = setting
+    timestep, n_substeps, iterations, residual = setting
+    sim.set_physics(
+        timestep=timestep,
+        n_substeps=n_substeps,
+        solver_iterations=iterations,
+        solver_residual=residual,
+    )
     records: list[dict[str, Any]] = []
     cpu, steps = 0.0, 0
     for episode in range(episodes):

@@ -256,7 +256,7 @@ class CoffeeEnv(gym.Env, EzPickle):
     ``width``           ``320``     image width for ``"rgb_array"``
     ``height``          ``240``     image height for ``"rgb_array"``
     ``render_shadows``  ``False``   draw shadows in ``"rgb_array"`` frames (about 2x the time)
-    ``exact_reset``     ``True``    rebuild the physics world at every reset (see below)
+    ``exact_reset``     ``True``    restore the world as loaded at every reset (see below)
     ``action_type``     ``"joint"`` ``"joint"``, ``"ee"`` or ``"ee_rot"`` (see Action Space)
     ``level``           ``"easy"``  difficulty level (the registered ids of ``gym_coffee.LEVELS``
                                     set it; see Starting State)
@@ -288,14 +288,15 @@ class CoffeeEnv(gym.Env, EzPickle):
 
     ## Reset and reproducibility
     ``reset(seed=s)`` fixes the layout, and a fresh env reproduces an episode bit for bit (also in
-    another process). By default (``exact_reset=True``) every reset rebuilds the world
-    (``resetSimulation`` and reload: ~20 ms, ~25 ms when rendering; no memory growth), so every
-    episode equals a fresh env's with the same seed, whatever ran before: evaluation results do not
-    depend on how episodes are spread over workers. ``exact_reset=False`` keeps the bodies loaded
-    and re-poses them (~1 ms, no memory growth), but Bullet's broadphase keeps some history (the
-    order of its pair cache), so an episode with contacts in a *reused* env can then differ from a
-    fresh env's in the last bits, and the difference can grow over a contact-rich episode (e.g.
-    1e-2 rad after a grasp).
+    another process). By default (``exact_reset=True``) every reset restores the state the world
+    had right after loading (PyBullet's ``saveState``/``restoreState``, ~0.5 ms; no memory
+    growth) before it re-poses the bodies, so every episode equals a fresh env's with the same
+    seed, whatever ran before: evaluation results do not depend on how episodes are spread over
+    workers. ``exact_reset=False`` only re-poses the bodies (~1 ms), and Bullet's broadphase keeps
+    some history (the order of its pair cache), so an episode with contacts in a *reused* env can
+    then differ from a fresh env's in the last bits, and the difference can grow over a
+    contact-rich episode (e.g. 1e-2 rad after a grasp); it is kept for compatibility and is no
+    faster.
 
     Pickling (``EzPickle``) keeps the constructor arguments only: the copy is a fresh env, and its
     episode starts anew at its next ``reset``.
@@ -434,9 +435,8 @@ class CoffeeEnv(gym.Env, EzPickle):
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
-        elif self.exact_reset:  # an empty world, loaded afresh: ~20 ms
-            self.sim.reset_world()
-            self._load()
+        elif self.exact_reset:  # the world as it was loaded, from its saved state: ~0.5 ms
+            self.sim.restore_state()
         # Otherwise the bodies stay loaded (removing and reloading single bodies leaked memory in
         # PyBullet) and are re-posed; their contact caches are dropped first.
         self.sim.clear_contact_caches((self.robot.name, *self.scene.MOVABLE_BODIES))
@@ -571,10 +571,12 @@ class CoffeeEnv(gym.Env, EzPickle):
         return q_target, opening
 
     def _load(self) -> None:
-        """Load robot and scene into the (new) physics server."""
+        """Load robot and scene into the (new) physics server and keep the loaded world's state
+        (what every exact reset restores)."""
         self.robot.load()
         self.scene.load()
         self.robot.reset(NEUTRAL_JOINTS)
+        self.sim.save_state()
 
     def _simulate(self) -> None:
         """One control step of physics with the robot's commands set (the button's spring is set

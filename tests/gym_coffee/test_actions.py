@@ -175,8 +175,9 @@ def test_fast_physics_preset_keeps_the_control_period():
 
 def test_solver_residual_reaches_the_solver():
     """``Simulation.solver_residual`` is PyBullet's early stop of the constraint solver: set
-    before a reset, a coarse one (1e-2) gives other joint positions within a few control steps
-    than the preset's, and the preset's value again gives the preset's episode bit for bit."""
+    (``set_physics``) before a reset, a coarse one (1e-2) gives other joint positions within a
+    few control steps than the preset's, and the preset's value again gives the preset's episode
+    bit for bit."""
     env = CoffeeEnv()
     preset = gym_coffee.PHYSICS_PRESETS["default"][3]
     action = np.array([1, -1, 1, 0, 0, 0, 0, 1], dtype=np.float32)
@@ -184,7 +185,7 @@ def test_solver_residual_reaches_the_solver():
         assert env.sim.solver_residual == preset
         runs = []
         for residual in (preset, 1e-2, preset):
-            env.sim.solver_residual = residual  # applied by the reset's world rebuild
+            env.sim.set_physics(solver_residual=residual)
             env.reset(seed=5)
             runs.append(np.stack([env.step(action)[0] for _ in range(5)]))
         np.testing.assert_array_equal(runs[0], runs[2])
