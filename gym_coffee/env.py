@@ -435,8 +435,10 @@ class CoffeeEnv(gym.Env, EzPickle):
         if self.sim.closed:  # reusable after close() (SB3's check_env renders, closes, resets)
             self.sim.connect()
             self._load()
-        elif self.exact_reset:  # the world as it was loaded, from its saved state: ~0.5 ms
-            self.sim.restore_state()
+        elif self.exact_reset and not self.sim.restore_state():  # restored: ~0.5 ms
+            # The world changed since it was loaded (e.g. a body added): load it afresh (~20 ms).
+            self.sim.reset_world()
+            self._load()
         # Otherwise the bodies stay loaded (removing and reloading single bodies leaked memory in
         # PyBullet) and are re-posed; their contact caches are dropped first.
         self.sim.clear_contact_caches((self.robot.name, *self.scene.MOVABLE_BODIES))

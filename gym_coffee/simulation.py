@@ -106,8 +106,10 @@ class Simulation:
         #: How each body was loaded (path, flags), to load the static ones into the backdrop.
         self._sources: dict[str, tuple[str, int, bool]] = {}
         self._backdrop: _Backdrop | None = None
-        #: PyBullet's id of the state kept by :meth:`save_state` (None: nothing kept).
+        #: PyBullet's id of the state kept by :meth:`save_state` (None: nothing kept) and the
+        #: number of bodies the world had then.
         self._saved_state: int | None = None
+        self._saved_bodies = 0
         self.client: bullet_client.BulletClient | None = None
         self.connect()
 
@@ -193,20 +195,27 @@ class Simulation:
         if self._saved_state is not None:
             p.removeState(self._saved_state)
         self._saved_state = p.saveState()
+        self._saved_bodies = p.getNumBodies()
 
-    def restore_state(self) -> None:
-        """Put the world back into the state kept by :meth:`save_state` (~0.5 ms).
+    def restore_state(self) -> bool:
+        """Put the world back into the state kept by :meth:`save_state` (~0.5 ms); ``False``
+        (and nothing changed) if no state was kept since the last :meth:`reset_world`, or if the
+        world no longer has the bodies it had then (PyBullet restores a state only into the same
+        bodies).
 
         Restored right after loading and followed by :meth:`clear_contact_caches`, the next
         episode equals one in a freshly loaded world bit for bit, whatever ran before (tested
-        with contact-rich episodes), where re-posing the bodies alone does not.
-
-        Raises:
-            RuntimeError: no state was kept (since the last :meth:`reset_world`).
+        with contact-rich episodes), where re-posing the bodies alone does not. What is not part
+        of a body's state is kept (e.g. ``changeDynamics``, colours, motor settings).
         """
-        if self._saved_state is None:
-            raise RuntimeError("no state to restore: call save_state() first")
-        self.p.restoreState(stateId=self._saved_state)
+        p = self.p
+        if self._saved_state is None or p.getNumBodies() != self._saved_bodies:
+            return False
+        try:
+            p.restoreState(stateId=self._saved_state)
+        except pybullet.error:
+            return False
+        return True
 
     def clear_contact_caches(self, names: Sequence[str]) -> None:
         """Forget the contact state of the bodies ``names`` (and remove every user constraint).

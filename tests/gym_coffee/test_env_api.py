@@ -420,6 +420,29 @@ def test_exact_reset_equals_a_freshly_loaded_world(env_id):
     np.testing.assert_array_equal(restored_random, fresh_random)
 
 
+def test_exact_reset_after_a_body_was_added_loads_the_world_afresh():
+    """PyBullet restores a saved state only into the same bodies: with a body added after loading
+    (through the simulation or PyBullet directly), the reset loads the world afresh, as a reset
+    did before it restored states, and the episode is a fresh env's."""
+    import pybullet_data
+
+    env = make(gym_coffee.ENV_ID)
+    fresh = make(gym_coffee.ENV_ID)
+    try:
+        sim = env.unwrapped.sim
+        env.reset(seed=0)
+        sim.load_urdf("block", "cube_small.urdf", (0.3, 0.0, 0.8), package_asset=False)
+        assert sim.restore_state() is False
+        np.testing.assert_array_equal(_random_episode(env, seed=4), _random_episode(fresh, 4))
+        assert "block" not in sim.bodies
+        sim.p.loadURDF(os.path.join(pybullet_data.getDataPath(), "cube_small.urdf"), [0.3, 0, 1])
+        np.testing.assert_array_equal(_random_episode(env, seed=5), _random_episode(fresh, 5))
+        assert sim.p.getNumBodies() == len(sim.bodies)
+    finally:
+        env.close()
+        fresh.close()
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs Linux /proc")
 @pytest.mark.parametrize("env_id", ONE_ID)
 def test_exact_resets_do_not_grow_memory(env_id):
