@@ -467,7 +467,13 @@ class _Overlay:
         self._scale = 1.0
 
     def reset(self) -> None:
-        """Forget the items (the env's reset rebuilt the world) and anchor to the camera."""
+        """Remove the items drawn so far (an exact reset restores the bodies' state and keeps
+        debug items; removing an id a new physics server no longer has is a no-op) and anchor
+        to the camera."""
+        if self.enabled:
+            for item in self._ids.values():
+                if item >= 0:
+                    self.client.removeUserDebugItem(item)
         self._ids, self._shown = {}, {}
         if not self.enabled:
             return

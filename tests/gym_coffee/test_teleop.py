@@ -224,3 +224,38 @@ def test_teleop_command_line(tmp_path, capsys):
     assert main(["teleop", "--out", str(tmp_path / "x.txt")]) == 2
     assert main(["teleop", "--out", str(tmp_path / "y.npz"), "--env-id", "CartPole-v1"]) == 2
     assert "not a gym_coffee environment" in capsys.readouterr().err
+
+
+def test_overlay_removes_its_texts_at_each_episode():
+    """The GUI overlay's texts are removed when an episode starts: an exact reset restores the
+    bodies' state and keeps PyBullet's debug items, so forgetting their ids stacked every
+    episode's texts on top of the last ones. (A fake GUI client: no display here.)"""
+    from gym_coffee.teleop import _Overlay
+
+    class FakeClient:
+        def __init__(self) -> None:
+            self.live: set[int] = set()
+            self.next_id = 0
+
+        def addUserDebugText(self, text, position, replaceItemUniqueId=None, **kwargs):
+            if replaceItemUniqueId is not None:
+                return replaceItemUniqueId
+            self.next_id += 1
+            self.live.add(self.next_id)
+            return self.next_id
+
+        def removeUserDebugItem(self, item):
+            self.live.discard(item)
+
+        def getDebugVisualizerCamera(self):
+            return (0, 0, None, None, None, None, (1.0, 0, 0), (0, 0, 1.0), 0, 0, 1.5, (0, 0, 0))
+
+    client = FakeClient()
+    sim = types.SimpleNamespace(client=client, gui=True)
+    env = types.SimpleNamespace(unwrapped=types.SimpleNamespace(sim=sim))
+    overlay = _Overlay(env, device=types.SimpleNamespace(show_help=True))
+    for episode in range(3):
+        overlay.reset()
+        overlay.draw({s: False for s in STAGES}, f"episode {episode}")
+        overlay.draw({s: True for s in STAGES}, f"episode {episode}, done")
+        assert 0 < len(client.live) == len(overlay._ids)  # one text per line, none left over
