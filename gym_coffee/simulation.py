@@ -91,10 +91,13 @@ class Simulation:
         if render_mode == "human" and not self.gui:
             # PyBullet's GUI would hang or abort without a display (e.g. in check_env on CI).
             logger.warning("render_mode='human' but no display is available: running headless")
-        self.timestep = float(timestep)
-        self.n_substeps = int(n_substeps)
-        self.solver_iterations = int(solver_iterations)
-        self.solver_residual = float(solver_residual)
+        self.client: bullet_client.BulletClient | None = None
+        self.set_physics(  # applied to the server by connect()
+            timestep=timestep,
+            n_substeps=n_substeps,
+            solver_iterations=solver_iterations,
+            solver_residual=solver_residual,
+        )
         self.bodies: dict[str, int] = {}
         #: Offset of each base's inertial frame from its URDF frame (None where they coincide).
         self._inertial_offset: dict[str, NDArray[np.float64] | None] = {}
@@ -110,7 +113,6 @@ class Simulation:
         #: number of bodies the world had then.
         self._saved_state: int | None = None
         self._saved_bodies = 0
-        self.client: bullet_client.BulletClient | None = None
         self.connect()
 
     @property
@@ -176,7 +178,7 @@ class Simulation:
         solver_residual: float | None = None,
     ) -> None:
         """Change the physics settings of the constructor (those given) from the next
-        :meth:`step` on."""
+        :meth:`step` on (a closed simulation applies them when it connects)."""
         if timestep is not None:
             self.timestep = float(timestep)
         if n_substeps is not None:
@@ -185,7 +187,8 @@ class Simulation:
             self.solver_iterations = int(solver_iterations)
         if solver_residual is not None:
             self.solver_residual = float(solver_residual)
-        self._apply_physics()
+        if self.client is not None:
+            self._apply_physics()
 
     def save_state(self) -> None:
         """Keep the world's current state in the physics server (PyBullet's ``saveState``: the
