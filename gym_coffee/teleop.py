@@ -470,13 +470,12 @@ class _Overlay:
         """Remove the items drawn so far (an exact reset restores the bodies' state and keeps
         debug items; removing an id a new physics server no longer has is a no-op) and anchor
         to the camera."""
-        if self.enabled:
-            for item in self._ids.values():
-                if item >= 0:
-                    self.client.removeUserDebugItem(item)
-        self._ids, self._shown = {}, {}
+        drawn, self._ids, self._shown = self._ids, {}, {}
         if not self.enabled:
             return
+        for item in drawn.values():
+            if item >= 0:
+                self.client.removeUserDebugItem(item)
         cam = self.client.getDebugVisualizerCamera()
         horizontal, vertical = np.asarray(cam[6], float), np.asarray(cam[7], float)
         if np.linalg.norm(horizontal) > 0 and np.linalg.norm(vertical) > 0:
