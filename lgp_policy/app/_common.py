@@ -165,30 +165,36 @@ def check_env_id(env_id: str) -> str:
     return env_id
 
 
-def add_env_options(p: argparse.ArgumentParser, what: str = "the layouts") -> None:
+def add_env_options(
+    p: argparse.ArgumentParser, what: str = "the layouts", *, from_policy: bool = False
+) -> None:
     """Add ``--level`` (a name of :data:`gym_coffee.LEVELS`) and ``--env-id`` (a registered id),
     mutually exclusive, read with :func:`env_id_from_args`, and ``--physics`` (a preset of
-    :data:`gym_coffee.PHYSICS_PRESETS`), read with :func:`env_kwargs_from_args`."""
+    :data:`gym_coffee.PHYSICS_PRESETS`), read with :func:`env_kwargs_from_args`.
+    ``from_policy``: the defaults are the env of a policy's demonstrations (the help says so)."""
     g = p.add_mutually_exclusive_group()
     levels = ", ".join(f"{name}: {env_id}" for name, env_id in gym_coffee.LEVELS.items())
+    first = "the level of the policy's demonstrations, else " if from_policy else ""
     g.add_argument(
         "--level",
         choices=list(gym_coffee.LEVELS),
         default=None,
-        help=f"difficulty level of {what} ({levels}; default {_default_level()})",
+        help=f"difficulty level of {what} ({levels}; default {first}{_default_level()})",
     )
     g.add_argument(
         "--env-id",
         default=None,
         metavar="ID",
-        help=f"registered env id of {what}, instead of --level (default {gym_coffee.ENV_ID})",
+        help=f"registered env id of {what}, instead of --level (default {first}"
+        f"{gym_coffee.ENV_ID})",
     )
+    first = "that of the policy's demonstrations, else " if from_policy else ""
     p.add_argument(
         "--physics",
         choices=list(gym_coffee.PHYSICS_PRESETS),
-        default="default",
-        help=f"physics preset of {what} (default: the task's physics; fast: 5 physics steps of "
-        "8 ms with 20 solver iterations, ~40%% less CPU per step, other trajectories)",
+        default=None,
+        help=f"physics preset of {what} (default: {first}the task's physics; fast: 5 physics "
+        "steps of 8 ms with 20 solver iterations, ~40%% less CPU per step, other trajectories)",
     )
 
 
@@ -212,7 +218,7 @@ def env_id_from_args(args: argparse.Namespace) -> str:
 
 def env_kwargs_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """The env keywords chosen with :func:`add_env_options` (``{}`` for the default physics)."""
-    physics = getattr(args, "physics", "default")
+    physics = getattr(args, "physics", None) or "default"
     return {} if physics == "default" else {"physics": physics}
 
 

@@ -17,9 +17,11 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
+import gym_coffee
 from lgp_policy._io import atomic_write_text
 from lgp_policy.app._common import (
     UsageError,
@@ -71,10 +73,11 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         help="evaluate a policy on held-out layouts (per-stage success)",
         description="Run a policy on layouts from seeds 10000+S.. (disjoint from demonstration "
         "seeds) of one difficulty level and print per-stage success rates with 95%% Wilson "
-        "intervals.",
+        "intervals. The level and physics default to those of the demonstrations the policy "
+        "was fitted on (recorded in the policy file).",
     )
     p.add_argument("policy", type=input_file(".npz"), help="policy file (GP or residual, .npz)")
-    add_env_options(p, "the evaluation layouts")
+    add_env_options(p, "the evaluation layouts", from_policy=True)
     p.add_argument("--episodes", type=episodes_int, default=100, help="layouts (default 100)")
     p.add_argument("--seed", type=seed_int, default=0, help="layout seed offset S (default 0)")
     p.add_argument("--workers", type=workers_int, default=1, help="parallel envs (default 1)")
@@ -209,13 +212,45 @@ def _check_evaluate(args: argparse.Namespace) -> str:
     return env_id
 
 
+def evaluation_env(
+    args: argparse.Namespace, policy: Any, given: str
+) -> tuple[str, dict[str, Any], str]:
+    """The env ``evaluate`` runs: ``--level``/``--env-id`` and ``--physics`` where given (``given``
+    is the checked id, or the default id), else those of the demonstrations the policy was
+    fitted on (``demonstrations_env_``, of a residual policy's base too), else the defaults.
+    Returns ``(env id, env kwargs, note)``; ``note`` says where a choice differs from the
+    demonstrations' env (evaluating elsewhere is allowed: it tests transfer)."""
+    recorded = getattr(policy, "demonstrations_env_", None) or getattr(
+        getattr(policy, "base", None), "demonstrations_env_", None
+    )
+    if recorded is None or recorded["env_id"] not in gym_coffee.ENV_IDS:
+        return given, env_kwargs_from_args(args), ""
+    env_id = given if args.level is not None or args.env_id is not None else recorded["env_id"]
+    physics = recorded["env_kwargs"].get("physics") or "default"
+    if physics not in gym_coffee.PHYSICS_PRESETS:  # not one this version has: the task's own
+        physics = "default"
+    if args.physics is None:
+        args = argparse.Namespace(**{**vars(args), "physics": physics})
+    env_kwargs = env_kwargs_from_args(args)
+    theirs = env_text(recorded["env_id"], {} if physics == "default" else {"physics": physics})
+    note = f"the policy was fitted on demonstrations of {theirs}"
+    return env_id, env_kwargs, "" if theirs == env_text(env_id, env_kwargs) else note
+
+
+def env_text(env_id: str, env_kwargs: dict[str, Any]) -> str:
+    """``"<env id>"``, or ``"<env id> (fast physics)"`` with another physics preset."""
+    return f"{env_id} ({env_kwargs['physics']} physics)" if env_kwargs else env_id
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from lgp_policy.app.evaluation import evaluate_policy_stages, format_results
 
-    env_id = _check_evaluate(args)
-    env_kwargs = env_kwargs_from_args(args)
+    given = _check_evaluate(args)
     policy = load_policy(args.policy)
-    print(f"evaluating {args.policy} on {env_id}", flush=True)
+    env_id, env_kwargs, note = evaluation_env(args, policy, given)
+    print(f"evaluating {args.policy} on {env_text(env_id, env_kwargs)}", flush=True)
+    if note:
+        print(f"note: {note}", file=sys.stderr, flush=True)
     result = evaluate_policy_stages(  # the video is rendered during the evaluation itself
         policy,
         args.episodes,

@@ -44,9 +44,10 @@ The per-environment memory (clock, filters, seen events) is the SB3 ``state``: p
 starts a new episode where ``episode_start`` says so or the observation's time went back.
 
 Files: one ``.npz`` (``allow_pickle=False``) holding the phase table and a JSON string ``metadata``
-(format name, schema version, parameters, adapter name, frame names, the constraint report).
-Saving is atomic and refuses to overwrite unless ``overwrite=True``; loading validates every
-name and number before building anything.
+(format name, schema version, parameters, adapter name, frame names, the constraint report, and
+``demonstrations_env``: the env id and keywords the demonstrations were recorded with, or null;
+optional, so files written before it load with none). Saving is atomic and refuses to overwrite
+unless ``overwrite=True``; loading validates every name and number before building anything.
 """
 
 from __future__ import annotations
@@ -91,6 +92,7 @@ __all__ = [
     "PolicyDistribution",
     "PolicyFileError",
     "PolicyState",
+    "demonstrations_env",
     "hand_points",
     "layout_features",
     "posture_clusters",
@@ -210,6 +212,46 @@ def _builtin_adapter(name: str) -> Any:
     raise PolicyFileError(
         f"the policy was fitted with the adapter {name!r}; pass it: load(path, adapter=...)"
     )
+
+
+MAX_ENV_KWARGS = 32
+"""Most env keywords a policy file may record for its demonstrations' env."""
+
+
+def demonstrations_env(metadata: Any) -> dict[str, Any] | None:
+    """``{"env_id", "env_kwargs"}`` of the env the demonstrations were recorded on, from their
+    metadata (``collect_demonstrations`` writes both) or a policy file's record; ``None`` when
+    it names no env id.
+
+    Raises:
+        ValueError: an env id that is not a string of 1-200 characters, or env keywords that are
+            not at most :data:`MAX_ENV_KWARGS` names with JSON scalar values (strings of at most
+            200 characters, finite numbers, booleans, null).
+    """
+    if not isinstance(metadata, Mapping) or metadata.get("env_id") is None:
+        return None
+    env_id, kwargs = metadata["env_id"], metadata.get("env_kwargs") or {}
+    if not isinstance(env_id, str) or not 0 < len(env_id) <= 200:
+        raise ValueError(f"env_id must be a string of 1-200 characters, got {str(env_id)[:80]!r}")
+
+    def scalar(v: Any) -> bool:
+        if isinstance(v, str):
+            return len(v) <= 200
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            return math.isfinite(v)
+        return v is None or isinstance(v, bool)
+
+    if (
+        not isinstance(kwargs, Mapping)
+        or len(kwargs) > MAX_ENV_KWARGS
+        or not all(isinstance(k, str) and 0 < len(k) <= 200 for k in kwargs)
+        or not all(scalar(v) for v in kwargs.values())
+    ):
+        raise ValueError(
+            f"env_kwargs must map at most {MAX_ENV_KWARGS} names to JSON scalars, got "
+            f"{str(kwargs)[:80]!r}"
+        )
+    return {"env_id": env_id, "env_kwargs": dict(kwargs)}
 
 
 def _finite(name: str, value: Any, low: float, high: float, *, low_open: bool = True) -> float:
@@ -444,6 +486,9 @@ class GPDemonstrationPolicy:
             of the frames' initial poses), or ``None``.
         posture_mean_, posture_std_: per posture cluster, ``(n_grid, d)`` joint-frame tables (the
             state from the cluster, the gripper from all demonstrations).
+        demonstrations_env_: ``{"env_id", "env_kwargs"}`` of the env the demonstrations were
+            recorded on, when their metadata names one (gym-coffee's recordings do), else
+            ``None``; saved with the policy (``gym-coffee evaluate`` defaults to it).
         encoder_: the fitted encoder (only after ``fit``; not saved).
     """
 
@@ -666,6 +711,10 @@ class GPDemonstrationPolicy:
         self.duration_ = float(np.mean(encoder.durations_))
         self.control_dt_ = float(np.median([np.median(np.diff(t)) for t in times]))
         self.n_demos_ = len(trajs)
+        try:  # where the demonstrations came from, if they say (evaluation defaults to it)
+            self.demonstrations_env_ = demonstrations_env(trajs.metadata)
+        except ValueError:  # free-form metadata: not an env this library can make
+            self.demonstrations_env_ = None
         lp = encoder.landmark_phases_
         self.stage_phases_ = [
             _event_phases(tr, phase_of(tr.time, landmarks[i] if landmarks else None, lp))
@@ -1428,6 +1477,7 @@ class GPDemonstrationPolicy:
             "duration": self.duration_,
             "control_dt": self.control_dt_,
             "n_demos": int(getattr(self, "n_demos_", 0)),
+            "demonstrations_env": getattr(self, "demonstrations_env_", None),
             "alignment": getattr(self, "alignment_", "none"),
             "stage_phases": getattr(self, "stage_phases_", []),
             "event_phases": self.event_phases_,
@@ -1622,6 +1672,13 @@ class GPDemonstrationPolicy:
         n_demos = meta.get("n_demos", 0)
         policy.n_demos_ = int(n_demos) if isinstance(n_demos, int) and n_demos >= 0 else 0
         policy.alignment_ = str(meta.get("alignment", "none"))[:200]
+        recorded = meta.get("demonstrations_env")  # absent before it was recorded
+        try:
+            if recorded is not None and not isinstance(recorded, dict):
+                raise ValueError(f"expected an object or null, got {str(recorded)[:80]!r}")
+            policy.demonstrations_env_ = demonstrations_env(recorded)
+        except ValueError as exc:
+            raise PolicyFileError(f"demonstrations_env: {exc}") from None
         policy.stage_phases_ = stage_phases
         policy.constraints_ = policy.constraint_report()
         policy._build_table()

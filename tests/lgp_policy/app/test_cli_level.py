@@ -44,6 +44,64 @@ def test_evaluate_runs_on_the_chosen_level(options, level, tmp_path, seen_env_id
     assert json.loads(out.read_text())["env_id"] == gym_coffee.LEVELS[level]
 
 
+HARD_FAST = {
+    "env_id": gym_coffee.LEVELS["hard"],
+    "env_kwargs": {"level": "hard", "physics": "fast"},
+}
+
+
+@pytest.mark.parametrize(
+    ("recorded", "options", "level", "physics", "note"),
+    [
+        # the policy file's record of its demonstrations' env is the default
+        (HARD_FAST, [], "hard", "fast", False),
+        ({"env_id": gym_coffee.LEVELS["hard"], "env_kwargs": {}}, [], "hard", None, False),
+        # what the user gives wins, with a note where it differs from the demonstrations'
+        (HARD_FAST, ["--level", "easy"], "easy", "fast", True),
+        (HARD_FAST, ["--physics", "default"], "hard", None, True),
+        (
+            HARD_FAST,
+            ["--env-id", gym_coffee.LEVELS["hard"], "--physics", "fast"],
+            "hard",
+            "fast",
+            False,
+        ),
+        # no record, or an env that is not a coffee level: the defaults
+        (None, [], "easy", None, False),
+        ({"env_id": "CartPole-v1", "env_kwargs": {}}, [], "easy", None, False),
+    ],
+)
+@pytest.mark.parametrize("residual", [False, True])
+def test_evaluate_defaults_to_the_env_of_the_policys_demonstrations(
+    recorded, options, level, physics, note, residual, tmp_path, monkeypatch, capsys
+):
+    from types import SimpleNamespace
+
+    seen: list[tuple[str, dict]] = []
+
+    def fake_evaluate(policy, n_episodes, *args, env_id=None, env_kwargs=None, **kwargs):
+        seen.append((env_id, env_kwargs))
+        return {"n_episodes": n_episodes}
+
+    gp = SimpleNamespace(demonstrations_env_=recorded)
+    loaded = SimpleNamespace(base=gp) if residual else gp  # a residual policy: its base's record
+    monkeypatch.setattr(commands, "load_policy", lambda path: loaded)
+    monkeypatch.setattr(evaluation, "evaluate_policy_stages", fake_evaluate)
+    monkeypatch.setattr(evaluation, "format_results", lambda r: "formatted")
+    policy = tmp_path / "policy.npz"
+    policy.write_bytes(b"stub")  # never opened: load_policy is stubbed
+    out = tmp_path / "r.json"
+    argv = ["evaluate", str(policy), "--episodes", "2", "--json", str(out), *options]
+    assert main(argv) == 0
+    expected = {} if physics is None else {"physics": physics}
+    assert seen == [(gym_coffee.LEVELS[level], expected)]
+    result = json.loads(out.read_text())
+    assert (result["env_id"], result["env_kwargs"]) == (gym_coffee.LEVELS[level], expected)
+    captured = capsys.readouterr()
+    assert f"on {gym_coffee.LEVELS[level]}" in captured.out
+    assert ("fitted on demonstrations of" in captured.err) == note
+
+
 def test_evaluate_help_lists_the_levels(capsys):
     with pytest.raises(SystemExit) as info:
         main(["evaluate", "--help"])

@@ -17,6 +17,7 @@ import pytest
 import gym_coffee
 from gym_coffee.demonstrations import Demonstration, DemonstrationSet
 from gym_coffee.env import OBS_DIM, OBS_SLICES, obs_part
+from lgp_policy.lfd.adapters.coffee import to_trajectories
 from lgp_policy.lfd.policy import GPDemonstrationPolicy, PolicyFileError, PolicyState
 
 N_STEPS = 40
@@ -203,6 +204,8 @@ def test_save_load_round_trip_gives_identical_actions(policy, demos, tmp_path):
     assert loaded.get_params() == policy.get_params()
     assert loaded.constraint_intervals() == policy.constraint_intervals()
     assert loaded.event_phases_ == policy.event_phases_
+    assert policy.demonstrations_env_ == {"env_id": "test", "env_kwargs": {}}  # the demos' env
+    assert loaded.demonstrations_env_ == policy.demonstrations_env_
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data["metadata"]))
     assert meta["kind"] == "lgp_policy.gp_demonstration_policy" and meta["adapter"] == "coffee"
@@ -267,12 +270,33 @@ def test_malformed_files_give_clear_errors(policy, tmp_path):
         ({"event_phases": {"cup_held": 7.0}}, "event_phases"),
         ({"adapter": "somewhere_else"}, "adapter"),
         ({"approach_offset": 1e9}, "approach_offset"),
+        ({"demonstrations_env": "CoffeeEasy-v0"}, "demonstrations_env"),
+        ({"demonstrations_env": {"env_id": 5}}, "demonstrations_env.*env_id"),
+        ({"demonstrations_env": {"env_id": "x" * 201}}, "demonstrations_env.*env_id"),
+        ({"demonstrations_env": {"env_kwargs": {"level": ["easy"]}}}, "env_kwargs"),
+        ({"demonstrations_env": {"env_kwargs": {str(i): i for i in range(33)}}}, "env_kwargs"),
     ],
 )
 def test_every_name_and_number_is_checked_on_load(policy, tmp_path, changes, match):
     good = policy.save(tmp_path / "good.npz")
     with pytest.raises(PolicyFileError, match=match):
         GPDemonstrationPolicy.load(_with_meta(good, tmp_path / "bad.npz", **changes))
+
+
+def test_the_demonstrations_env_is_recorded_only_when_they_name_one(demos, policy, tmp_path):
+    """Free-form metadata (no env id, or keywords that are not JSON scalars) records nothing;
+    a file written before the record existed loads with none."""
+    for metadata in ({}, {"env_id": None}, {"env_id": "test", "env_kwargs": {"f": object()}}):
+        trajs = to_trajectories(demos)
+        trajs.metadata = metadata
+        fitted = GPDemonstrationPolicy(n_steps=60, n_grid=200).fit(trajs, allow_failed=True)
+        assert fitted.demonstrations_env_ is None
+    good = policy.save(tmp_path / "good.npz")
+    with np.load(good, allow_pickle=False) as data:
+        meta = json.loads(str(data["metadata"]))
+    del meta["demonstrations_env"]
+    old = _rewrite(good, tmp_path / "old.npz", metadata=np.array(json.dumps(meta)))
+    assert GPDemonstrationPolicy.load(old).demonstrations_env_ is None
 
 
 def test_unknown_members_are_not_read(policy, tmp_path):
