@@ -68,6 +68,13 @@ MAX_JSON_BYTES = 16 * 2**20
 _ZIP_MAGIC = b"PK\x03\x04"
 _EMPTY_ZIP_MAGIC = b"PK\x05\x06"
 _EOCD = struct.Struct("<4s4H2LH")  # end of central directory record (22 bytes)
+_ZIP64_LOCATOR = struct.Struct("<4sLQL")  # its ZIP64 locator, just before it (20 bytes)
+_ZIP64_EOCD = struct.Struct("<4sQ2H2L4Q")  # the ZIP64 end of central directory record (56 bytes)
+DIRECTORY_BYTES_PER_ENTRY = 46 + 256
+"""Room per allowed entry in an archive's central directory: the fixed 46 bytes plus 256 for
+name, extra field and comment (``numpy.savez`` writes about 60 bytes per entry). The directory's
+declared size is what :mod:`zipfile` parses, so this bounds its work whatever the entry count
+claims."""
 
 
 class FileFormatError(ValueError):
@@ -263,9 +270,11 @@ def _label(source: str | os.PathLike[str] | IO[bytes]) -> str:
     return str(getattr(source, "name", None) or "<in-memory file>")
 
 
-def _entry_count(fh: IO[bytes], size: int, label: str) -> int:
-    """Number of entries the archive's end-of-central-directory record declares (read before
-    :mod:`zipfile` parses the whole directory)."""
+def _directory(fh: IO[bytes], size: int, label: str) -> tuple[int, int]:
+    """``(entries, bytes)`` of the archive's central directory as its end-of-central-directory
+    record (or the ZIP64 one it points to) declares them, read before :mod:`zipfile` parses the
+    directory: :mod:`zipfile` reads and parses exactly that many bytes, whatever the entry
+    count says."""
     tail = min(size, _EOCD.size + 0xFFFF)
     fh.seek(size - tail)
     data = fh.read(tail)
@@ -275,7 +284,23 @@ def _entry_count(fh: IO[bytes], size: int, label: str) -> int:
             f"{label}: not an .npz file (no zip directory at its end; truncated?)", path=label
         )
     fields = _EOCD.unpack_from(data, pos)
-    return int(fields[4])  # total number of entries
+    entries, directory = int(fields[4]), int(fields[5])
+    if entries == 0xFFFF or directory == 0xFFFFFFFF or fields[6] == 0xFFFFFFFF:  # ZIP64
+        loc = pos - _ZIP64_LOCATOR.size
+        if loc < 0 or data[loc : loc + 4] != b"PK\x06\x07":
+            raise FileFormatError(
+                f"{label}: not an .npz file (a ZIP64 directory without its locator)", path=label
+            )
+        offset = int(_ZIP64_LOCATOR.unpack_from(data, loc)[2])
+        if not 0 <= offset <= size - _ZIP64_EOCD.size:
+            raise FileFormatError(f"{label}: not an .npz file (bad ZIP64 record)", path=label)
+        fh.seek(offset)
+        record = fh.read(_ZIP64_EOCD.size)
+        if record[:4] != b"PK\x06\x06":
+            raise FileFormatError(f"{label}: not an .npz file (bad ZIP64 record)", path=label)
+        fields64 = _ZIP64_EOCD.unpack(record)
+        entries, directory = int(fields64[7]), int(fields64[8])
+    return entries, directory
 
 
 def _open_archive(
@@ -307,10 +332,17 @@ def _open_archive(
                 "if the file is genuine)",
                 path=label,
             )
-        n_entries = _entry_count(fh, size, label)
+        n_entries, directory = _directory(fh, size, label)
         if n_entries > max_entries:
             raise FileFormatError(
                 f"{label} lists {n_entries} entries; expected at most {max_entries}", path=label
+            )
+        if directory > min(size, max_entries * DIRECTORY_BYTES_PER_ENTRY):
+            raise FileFormatError(
+                f"{label} has a {directory}-byte zip directory; expected at most "
+                f"{max_entries * DIRECTORY_BYTES_PER_ENTRY} (room for {max_entries} entries) "
+                "within the file",
+                path=label,
             )
         fh.seek(0)
         return zipfile.ZipFile(fh), fh

@@ -245,6 +245,56 @@ def test_too_many_entries(tmp_path):
         read_npz(path, max_entries=10)
 
 
+def _lying_count(path, count):
+    """Set the end-of-central-directory record's entry counts to ``count`` (the directory and its
+    declared size unchanged: :mod:`zipfile` still parses every entry)."""
+    raw = bytearray(path.read_bytes())
+    eocd = raw.rfind(b"PK\x05\x06")
+    raw[eocd + 8 : eocd + 12] = count.to_bytes(2, "little") * 2
+    path.write_bytes(bytes(raw))
+    return path
+
+
+def test_a_lying_entry_count_does_not_let_a_large_directory_through(tmp_path):
+    """2000 entries declared as 2: the directory's size (what zipfile parses) is checked too."""
+    path = _npz(tmp_path, w=np.zeros(3), **{f"x{i}": np.zeros(0) for i in range(2000)})
+    _lying_count(path, 2)
+    with pytest.raises(FileFormatError, match=r"\d+-byte zip directory; expected at most"):
+        read_npz(path, max_entries=100)
+    assert read_npz(_npz(tmp_path, w=np.zeros(3)), max_entries=1)["w"].shape == (3,)
+
+
+def _as_zip64(path, count=None):
+    """End the archive with a ZIP64 end record, its locator and a classic record whose fields
+    point to them (as zipfile writes for >65535 entries); ``count``: the entries it declares."""
+    raw = path.read_bytes()
+    pos = raw.rfind(b"PK\x05\x06")
+    _sig, _d, _dcd, _n, total, size, offset, _c = _io._EOCD.unpack_from(raw, pos)
+    total = total if count is None else count
+    record = _io._ZIP64_EOCD.pack(b"PK\x06\x06", 44, 45, 45, 0, 0, total, total, size, offset)
+    locator = _io._ZIP64_LOCATOR.pack(b"PK\x06\x07", 0, pos, 1)
+    end = _io._EOCD.pack(b"PK\x05\x06", 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFF, 0)
+    path.write_bytes(raw[:pos] + record + locator + end)
+    return path
+
+
+def test_zip64_directories_are_checked_in_their_zip64_record(tmp_path):
+    good = _as_zip64(_npz(tmp_path, "good.npz", w=np.arange(3.0)))
+    assert read_npz(good, max_entries=1)["w"].tolist() == [0.0, 1.0, 2.0]
+    many = _as_zip64(_npz(tmp_path, "many.npz", **{f"x{i}": np.zeros(0) for i in range(20)}))
+    with pytest.raises(FileFormatError, match="lists 20 entries; expected at most 10"):
+        read_npz(many, max_entries=10)
+    lying = _npz(tmp_path, "lying.npz", **{f"x{i}": np.zeros(0) for i in range(2000)})
+    _as_zip64(lying, count=2)
+    with pytest.raises(FileFormatError, match=r"\d+-byte zip directory; expected at most"):
+        read_npz(lying, max_entries=100)
+    raw = bytearray(good.read_bytes())
+    raw[raw.rfind(b"PK\x06\x07") : raw.rfind(b"PK\x06\x07") + 4] = b"XXXX"  # no locator
+    (tmp_path / "bad.npz").write_bytes(bytes(raw))
+    with pytest.raises(FileFormatError, match="ZIP64"):
+        read_npz(tmp_path / "bad.npz")
+
+
 @pytest.mark.parametrize(
     ("text", "fragment"),
     [
