@@ -108,6 +108,9 @@ def _make_files(tmp: Path, demos: Path, policy: Path) -> dict[str, Path]:
         _write(new(name), arrays, compressed)
 
     new("text.npz").write_text("this is a text file, renamed\n")
+    with open(new("huge.npz"), "wb") as fh:  # 3 GiB, sparse: a read into memory would show
+        fh.write(b"PK\x03\x04")
+        fh.truncate(3 * 2**30)
     new("empty.npz").write_bytes(b"")
     buf = io.BytesIO()
     np.save(buf, np.ones(3))
@@ -395,6 +398,11 @@ cli(
     "argument POLICY: {p_is_demos.npz} is not a readable policy file: {p_is_demos.npz}: missing",
 )
 cli("finetune-policy-text", "finetune {text.npz} --out {tmp}/ft", "POLICY: {text.npz} is not")
+cli(
+    "finetune-policy-huge",
+    "finetune {huge.npz} --out {tmp}/ft",
+    "argument POLICY: {huge.npz} is 3221225472 bytes; a policy file has at most",
+)
 
 # --- the command line: input files ----------------------------------------------------------
 cli("fit-demos-text", "fit {text.npz} --out {tmp}/p.npz", "{text.npz}")

@@ -485,8 +485,14 @@ def run_finetune(args: argparse.Namespace) -> int:
     for seed in args.seeds:
         check_output_folder("--out", out / f"seed{seed}", force=args.force, owned=())
     base_path = Path(args.policy)
-    from lgp_policy.lfd.policy import GPDemonstrationPolicy
+    from lgp_policy.lfd.policy import MAX_FILE_BYTES, GPDemonstrationPolicy
 
+    size = base_path.stat().st_size
+    if size > MAX_FILE_BYTES:  # checked before the file is read into memory
+        raise UsageError(
+            f"argument POLICY: {base_path} is {size} bytes; a policy file has at most "
+            f"{MAX_FILE_BYTES}"
+        )
     base_bytes = base_path.read_bytes()
     named = io.BytesIO(base_bytes)
     named.name = str(base_path)  # the errors name the file, not "<in-memory file>"
