@@ -18,6 +18,7 @@ import importlib.util
 import math
 import os
 import sys
+import tempfile
 import traceback
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -50,6 +51,7 @@ __all__ = [
     "positive_int",
     "run_command",
     "seed_int",
+    "set_aside",
 ]
 
 PROG = "gym-coffee"
@@ -282,14 +284,15 @@ def check_video_output(flag: str, path: str | os.PathLike[str], *, force: bool) 
 def check_output_folder(
     flag: str, path: str | os.PathLike[str], *, force: bool, owned: Iterable[str]
 ) -> list[Path]:
-    """Check an output folder before any work; return the files to remove first.
+    """Check an output folder before any work; return the earlier files it would replace.
 
     A new or empty folder is fine. A folder with files needs ``force``; then the files named in
-    ``owned`` (those the command writes) are returned for removal, other files are left alone,
-    so the folder never mixes the outputs of two runs.
+    ``owned`` (those the command writes) are returned, to be set aside (:func:`set_aside`) so
+    that the folder never mixes the outputs of two runs; other files are left alone.
 
     Raises:
-        UsageError: ``path`` is a file, not writable, or a non-empty folder without ``force``.
+        UsageError: ``path`` is a file, not writable, or a non-empty folder without ``force``;
+            a name in ``owned`` is a folder.
     """
     path = Path(path)
     if path.exists() and not path.is_dir():
@@ -304,12 +307,30 @@ def check_output_folder(
             )
         if not os.access(path, os.W_OK | os.X_OK):
             raise UsageError(f"argument {flag}: folder {path} is not writable")
-        return [path / name for name in owned if (path / name).is_file()]
+        present = [path / name for name in owned if os.path.lexists(path / name)]
+        for file in present:
+            if file.is_dir() and not file.is_symlink():
+                raise UsageError(
+                    f"argument {flag}: {file} is a folder; this command writes a file there"
+                )
+        return present
     try:  # a new folder: its nearest existing parent must be writable
         check_output_path(path / "x", force=True, what="output folder")
     except ValueError as exc:
         raise UsageError(f"argument {flag}: {exc}") from None
     return []
+
+
+def set_aside(files: list[Path], folder: Path) -> Path | None:
+    """Move ``files`` (an earlier run's, in ``folder``) into a new hidden subfolder of ``folder``
+    (``.previous-run-*``, renames only); return it, or ``None`` when there are none. The caller
+    removes it once the new outputs are complete, and otherwise leaves it for the user."""
+    if not files:
+        return None
+    aside = Path(tempfile.mkdtemp(prefix=".previous-run-", dir=folder))
+    for file in files:
+        os.replace(file, aside / file.name)
+    return aside
 
 
 # ----------------------------------------------------------------------- the one error path

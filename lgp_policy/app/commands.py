@@ -284,8 +284,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_seed_room(args.seed, 100 * args.demos, "--demos", args.demos)
     check_seed_room(args.seed, EVAL_SEED_OFFSET + args.episodes, "--episodes", args.episodes)
     kwargs = _policy_kwargs(args)
-    for path in stale:  # --force: the earlier run's files go first, so no mix of two runs
-        path.unlink(missing_ok=True)
     pipeline.run_pipeline(
         args.out,
         n_demos=args.demos,
@@ -295,6 +293,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         video=not args.no_video,
         plots=not args.no_plots,
         policy_kwargs=kwargs,
+        force=bool(stale),  # the earlier run's files: set aside until this one completes
         env_id=env_id,
         env_kwargs=env_kwargs_from_args(args),
     )

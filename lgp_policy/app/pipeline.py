@@ -4,7 +4,10 @@
 timings in ``results.json`` (wall and CPU seconds per stage, the evaluation workers' CPU included)
 and ``benchmarks/pipeline.py`` all come from it. ``results.json`` is written (atomically) after
 every stage, so a run that is interrupted keeps what finished: ``"status"`` says
-``"running"``, ``"interrupted"`` (with the stage) or ``"complete"``.
+``"running"``, ``"interrupted"`` (with the stage) or ``"complete"``. With ``force``, the files of
+an earlier run in the folder are moved into a hidden ``.previous-run-*`` subfolder first and
+deleted only when the new run completes: an interrupted run loses nothing (``results.json``'s
+``"previous_run"`` names the subfolder), and the folder never mixes two runs.
 
 Each evaluation layout is rolled out once: the first layout's observations (for Fig. 5) and
 frames (for the video) are kept from the evaluation roll-out itself. The whole run limits BLAS to
@@ -14,7 +17,9 @@ one thread (the GPs' matrices are small; more threads only spin).
 from __future__ import annotations
 
 import json
+import os
 import resource
+import shutil
 import sys
 import time
 from collections.abc import Iterator
@@ -23,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from lgp_policy._io import atomic_write_text
+from lgp_policy.app._common import set_aside
 
 __all__ = ["PIPELINE_STAGES", "RUN_FILES", "run_pipeline"]
 
@@ -82,8 +88,8 @@ def run_pipeline(
         video, plots: write ``rollout.gif`` / the figures.
         policy_kwargs: keywords of :class:`~lgp_policy.lfd.policy.GPDemonstrationPolicy`.
         progress: progress bars.
-        force: replace files of an earlier run (:data:`RUN_FILES`) in ``out``; without it they
-            are an error, raised before any work.
+        force: replace files of an earlier run (:data:`RUN_FILES`) in ``out`` (set aside until
+            this run completes, see above); without it they are an error, raised before any work.
         env_id: the task: a registered id or a level name of ``gym_coffee.LEVELS`` (default
             ``gym_coffee.ENV_ID``, the easy level); demonstrations and evaluation use it, and
             ``results.json`` records it.
@@ -116,7 +122,7 @@ def run_pipeline(
             f"registered id, got {env_id!r}"
         )
     out = Path(out)
-    present = [n for n in RUN_FILES if (out / n).exists()]
+    present = [n for n in RUN_FILES if os.path.lexists(out / n)]
     if present and not force:
         raise FileExistsError(
             f"{out} holds files of an earlier run ({', '.join(present)}); pass force=True "
@@ -125,6 +131,9 @@ def run_pipeline(
     # The env of the demonstrations, made before any work: it checks env_kwargs.
     record_env = gym.make(env_id, **(env_kwargs or {}))
     out.mkdir(parents=True, exist_ok=True)
+    # force: the earlier run's files move aside (not deleted) until this run completes, so an
+    # interrupted run loses nothing and the folder never mixes two runs.
+    aside = set_aside([out / n for n in present], out)
     stages = [(n, what) for n, what in PIPELINE_STAGES if (n != "plots" or plots)]
     stages = [(n, what) for n, what in stages if (n != "video" or video)]
     results: dict[str, Any] = {
@@ -151,6 +160,9 @@ def run_pipeline(
         except BaseException:
             results["status"] = "interrupted"
             results["interrupted_in"] = name
+            if aside is not None:
+                results["previous_run"] = str(aside)
+                print(f"the earlier run's files are in {aside}", file=sys.stderr, flush=True)
             save()
             raise
         results["timings"][name] = {
@@ -226,6 +238,8 @@ def run_pipeline(
     }
     results["status"] = "complete"
     save()
+    if aside is not None:
+        shutil.rmtree(aside)
     total = results["timings"]["total"]
     print(
         f"done in {total['wall_s']:.0f} s ({total['cpu_s']:.0f} CPU s); "

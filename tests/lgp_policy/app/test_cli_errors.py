@@ -180,8 +180,20 @@ def test_run_force_replaces_only_the_files_run_writes(monkeypatch, tmp_path, cap
     assert main(["run", "--out", str(out), "--episodes", "3", "--seed", "5"]) == 2
     assert "not empty" in capsys.readouterr().err
     assert main(["run", "--out", str(out), "--episodes", "3", "--seed", "5", "--force"]) == 0
-    assert seen["files"] == ["notes.txt"]
+    # nothing deleted before the run: the pipeline sets the earlier files aside (tested there)
+    assert seen["files"] == ["fig4_constraints.png", "notes.txt", "results.json", "rollout.gif"]
+    assert seen["kwargs"]["force"] is True
     assert seen["kwargs"]["n_episodes"] == 3 and seen["kwargs"]["seed"] == 5
+    (out / "results.json").unlink()
+    (out / "policy.npz").mkdir()  # a folder where run writes a file: refused, nothing touched
+    assert main(["run", "--out", str(out), "--force"]) == 2
+    assert "policy.npz is a folder; this command writes a file there" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == [
+        "fig4_constraints.png",
+        "notes.txt",
+        "policy.npz",
+        "rollout.gif",
+    ]
 
 
 def test_record_refuses_before_making_an_env(monkeypatch, tmp_path, capsys):

@@ -5,6 +5,7 @@ interrupted after the evaluation keeps what finished."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -110,6 +111,40 @@ def test_interrupted_run_keeps_what_finished(tmp_path, monkeypatch):
     assert (out / "policy.npz").exists() and not (out / "rollout.gif").exists()
     with pytest.raises(FileExistsError, match="force"):  # a second run never mixes into it
         pipeline.run_pipeline(out, n_demos=1, n_episodes=1, progress=False)
+
+
+def test_a_forced_run_sets_the_earlier_run_aside_until_it_completes(tmp_path, monkeypatch):
+    """``force``: an interrupted run leaves the earlier run's files whole in ``.previous-run-*``
+    (named in results.json), the folder holding only the new run's files; a complete run
+    removes them."""
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("policy.npz", "results.json", "rollout.gif"):
+        (out / name).write_text(f"earlier {name}")
+    (out / "notes.txt").write_text("mine")
+    quick = dict(n_demos=1, n_episodes=1, seed=5, video=False, progress=False, force=True)
+    quick["policy_kwargs"] = {"model": "empirical"}
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plots, "make_all", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run_pipeline(out, **quick)
+    results = json.loads((out / "results.json").read_text())
+    aside = Path(results["previous_run"])
+    assert aside.parent == out and aside.name.startswith(".previous-run-")
+    assert {p.name: p.read_text() for p in aside.iterdir()} == {
+        n: f"earlier {n}" for n in ("policy.npz", "results.json", "rollout.gif")
+    }
+    assert not (out / "rollout.gif").exists()  # not this run's: no mix of two runs
+    assert (out / "notes.txt").read_text() == "mine"
+    monkeypatch.undo()
+    pipeline.run_pipeline(out, **{**quick, "video": True})
+    left = sorted(p.name for p in out.iterdir())
+    assert [n for n in left if n.startswith(".")] == [aside.name]  # the interrupted run's aside
+    assert {"notes.txt", "policy.npz", "results.json", "rollout.gif"} <= set(left)
+    assert json.loads((out / "results.json").read_text())["status"] == "complete"
 
 
 def test_run_refuses_bad_env_kwargs_before_any_work(tmp_path):
