@@ -124,7 +124,7 @@ def check_output_path(
             f"{what} {path}: expected a name ending in {' or '.join(suffixes)}, "
             f"got {path.suffix or 'no suffix'!r}"
         )
-    if path.exists() and not force:
+    if os.path.lexists(path) and not force:  # a dangling link too: the writer would refuse it
         raise _refuse_existing(path)
     parent = path.absolute().parent
     while not parent.exists():
@@ -156,7 +156,7 @@ def atomic_output(
         FileExistsError: ``path`` exists and ``force`` is false.
     """
     path = Path(path)
-    if path.exists() and not force:
+    if os.path.lexists(path) and not force:
         raise _refuse_existing(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(
@@ -177,7 +177,7 @@ def atomic_output(
             except FileExistsError:
                 raise _refuse_existing(path) from None
             except OSError:  # no hard links on this file system
-                if path.exists():
+                if os.path.lexists(path):
                     raise _refuse_existing(path) from None
                 os.replace(tmp, path)
         _fsync_folder(path.parent)

@@ -124,6 +124,9 @@ def _make_files(tmp: Path, demos: Path, policy: Path) -> dict[str, Path]:
     new("existing.json").write_text('{"keep": true}')
     new("existing.gif").write_bytes(b"GIF89a keep")
     new("existing.npz").write_bytes(b"keep")
+    new("dangling.npz").symlink_to(tmp / "nowhere" / "x.npz")
+    new("dangling_dir").symlink_to(tmp / "nowhere" / "d")
+    new("dangling.json").symlink_to(tmp / "nowhere" / "r.json")
     new("nonempty").mkdir()
     (f["nonempty"] / "notes.txt").write_text("mine")
 
@@ -251,6 +254,7 @@ cli(
     "argument --out: output {tmp}/d.txt: expected a name ending in .npz",
 )
 cli("record-out-exists", "record --out {existing.npz}", "{existing.npz} exists; pass --force")
+cli("record-out-dangling", "record --out {dangling.npz}", "{dangling.npz} exists; pass --force")
 cli("record-out-folder", "record --out {folder.npz}", "is a folder")
 cli("record-out-under-file", "record --out {existing.json}/d.npz", "is not a folder")
 cli("record-video-suffix", "record --out {tmp}/d.npz --video {tmp}/v.avi", "argument --video")
@@ -293,6 +297,7 @@ cli(
 )
 cli("fit-out-missing", "fit {demos}", "required: --out")
 cli("fit-out-exists", "fit {demos} --out {existing.npz}", "{existing.npz} exists; pass --force")
+cli("fit-out-dangling", "fit {demos} --out {dangling.npz}", "{dangling.npz} exists; pass --force")
 cli("fit-out-is-input", "fit {demos} --out {demos} --force", "is also an input")
 cli("fit-out-suffix", "fit {demos} --out {tmp}/policy.json", "expected a name ending in .npz")
 cli(
@@ -363,6 +368,7 @@ cli(
     "expected a name ending in .json",
 )
 cli("evaluate-json-folder", "evaluate {policy} --json {tmp}", "is a folder")
+cli("evaluate-json-dangling", "evaluate {policy} --json {dangling.json}", "exists; pass --force")
 cli("evaluate-json-is-input", "evaluate {policy} --json {policy}", "is also an input")
 cli("evaluate-video-suffix", "evaluate {policy} --video {tmp}/v.webm", "ending in .mp4 or .gif")
 cli(
@@ -378,6 +384,7 @@ cli(
 cli("evaluate-backend", "evaluate {policy} --backend dask", "argument --backend: invalid choice")
 cli("evaluate-address-local", "evaluate {policy} --address auto", "--address: needs --backend ray")
 cli("run-out-file", "run --out {existing.json}", "is a file; expected a folder")
+cli("run-out-dangling", "run --out {dangling_dir}", "is a link to nothing; expected a folder")
 cli("run-out-nonempty", "run --out {nonempty}", "is not empty (notes.txt); pass --force")
 cli("run-demos-0", "run --out {tmp}/r --demos 0", "argument --demos")
 cli("run-episodes-0", "run --out {tmp}/r --episodes 0", "argument --episodes")

@@ -295,6 +295,8 @@ def check_output_folder(
             a name in ``owned`` is a folder.
     """
     path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise UsageError(f"argument {flag}: {path} is a link to nothing; expected a folder")
     if path.exists() and not path.is_dir():
         raise UsageError(f"argument {flag}: {path} is a file; expected a folder")
     if path.is_dir():

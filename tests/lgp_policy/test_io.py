@@ -114,6 +114,22 @@ def test_check_output_path(tmp_path):
             check_output_path(ro / "x.json", force=False)
 
 
+def test_a_dangling_link_counts_as_an_existing_output(tmp_path):
+    """Refused up front without force (the writer's hard link would refuse it after the work);
+    with force the link itself is replaced, nothing is written through it."""
+    link = tmp_path / "out.json"
+    link.symlink_to(tmp_path / "elsewhere" / "target.json")
+    with pytest.raises(FileExistsError, match="exists; pass --force"):
+        check_output_path(link, force=False)
+    with pytest.raises(FileExistsError, match="exists; pass --force"):
+        atomic_write_text(link, "new", force=False)
+    assert link.is_symlink() and not (tmp_path / "elsewhere").exists()
+    assert check_output_path(link, force=True) == link
+    atomic_write_text(link, "new", force=True)
+    assert not link.is_symlink() and link.read_text() == "new"
+    assert not (tmp_path / "elsewhere").exists()
+
+
 # ------------------------------------------------------------------------------------ reading
 def _npz(tmp_path, name="f.npz", **arrays):
     path = tmp_path / name
