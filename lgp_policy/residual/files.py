@@ -99,16 +99,18 @@ def _metadata(raw: NDArray[Any], where: str) -> dict[str, Any]:
 
 def read_policy_kind(source: Path | io.BytesIO) -> Any:
     """The ``kind`` (or ``format``) in the JSON metadata of an ``.npz`` policy file; reads the
-    ``metadata`` member only (size-checked)."""
+    ``metadata`` member only (size-checked).
+
+    Raises:
+        FileFormatError: not a policy file, or its metadata is not a JSON object (the file may be
+            of either kind, so the error is the common one, not a residual policy's).
+    """
     where = str(source) if isinstance(source, Path) else "<in-memory file>"
-    try:
-        meta = read_json_member(source, "metadata", max_bytes=MAX_METADATA_BYTES)
-    except FileFormatError as exc:
-        raise ResidualPolicyFormatError(str(exc)) from exc
+    meta = read_json_member(source, "metadata", max_bytes=MAX_METADATA_BYTES)
     if isinstance(source, io.BytesIO):
         source.seek(0)
     if not isinstance(meta, dict):
-        raise ResidualPolicyFormatError(f"{where}: metadata must be a JSON object")
+        raise FileFormatError(f"{where}: metadata must be a JSON object", path=where)
     return meta.get("kind", meta.get("format"))
 
 
