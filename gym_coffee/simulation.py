@@ -36,6 +36,13 @@ class _Client(bullet_client.BulletClient):
     (``BulletClient.__getattr__`` inspects and wraps the function anew each time: ~20% of a
     step's CPU time went there)."""
 
+    def __init__(self, connection_mode: int) -> None:
+        # BulletClient's own __init__ passes ``options=""``, and PyBullet prints "argv[0]=" to
+        # the C stdout for any options string: in every command's output, between its lines.
+        self._shapes: dict[Any, Any] = {}
+        self._pid = os.getpid()
+        self._client = pybullet.connect(connection_mode)
+
     def __getattr__(self, name: str) -> Any:
         attribute = super().__getattr__(name)
         if name != "disconnect" and isinstance(attribute, functools.partial):

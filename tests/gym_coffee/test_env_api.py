@@ -230,6 +230,19 @@ def test_rgb_array_render(env_id, size):
         env.close()
 
 
+def test_making_resetting_and_rendering_print_nothing(capfd):
+    """PyBullet prints "argv[0]=" to the C stdout when connected with an options string; it
+    ended up between the lines of every command's output (and in files piped from it)."""
+    env = make(gym_coffee.ENV_ID, render_mode="rgb_array")
+    try:
+        env.reset(seed=0)
+        env.step(env.action_space.sample())
+        env.render()
+    finally:
+        env.close()
+    assert capfd.readouterr().out == ""
+
+
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_render_mode_none_returns_none(env_id):
     env = make(env_id)
