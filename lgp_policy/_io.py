@@ -51,6 +51,7 @@ __all__ = [
     "atomic_save_npz",
     "atomic_write_bytes",
     "atomic_write_text",
+    "check_creatable",
     "check_output_path",
     "read_json_member",
     "read_npz",
@@ -126,14 +127,24 @@ def check_output_path(
         )
     if os.path.lexists(path) and not force:  # a dangling link too: the writer would refuse it
         raise _refuse_existing(path)
-    parent = path.absolute().parent
+    check_creatable(path.absolute().parent, f"{what} {path}")
+    return path
+
+
+def check_creatable(folder: str | os.PathLike[str], what: str) -> None:
+    """Check that ``folder`` is, or can be made, a writable folder: its nearest existing
+    ancestor must be a writable folder.
+
+    Raises:
+        ValueError: ``"{what}: ..."`` naming the ancestor that is a file or not writable.
+    """
+    parent = Path(folder).absolute()
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
-        raise ValueError(f"{what} {path}: {parent} is not a folder")
+        raise ValueError(f"{what}: {parent} is not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"{what} {path}: folder {parent} is not writable")
-    return path
+        raise ValueError(f"{what}: folder {parent} is not writable")
 
 
 @contextlib.contextmanager

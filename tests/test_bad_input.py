@@ -402,7 +402,8 @@ cli(
 cli(
     "finetune-policy-is-demos",
     "finetune {p_is_demos.npz} --out {tmp}/ft",
-    "argument POLICY: {p_is_demos.npz} is not a readable policy file: {p_is_demos.npz}: missing",
+    "argument POLICY: {p_is_demos.npz} is a demonstrations file (gym_coffee.demonstrations), "
+    "not a policy; fit a policy to it first",
 )
 cli("finetune-policy-text", "finetune {text.npz} --out {tmp}/ft", "POLICY: {text.npz} is not")
 cli(
@@ -422,7 +423,11 @@ cli("fit-demos-is-policy", "fit {d_is_policy.npz} --out {tmp}/p.npz", "{d_is_pol
 cli("evaluate-policy-text", "evaluate {text.npz}", "{text.npz} is not")
 cli("evaluate-policy-empty", "evaluate {empty.npz}", "{empty.npz}")
 cli("evaluate-policy-truncated", "evaluate {trunc_policy.npz}", "{trunc_policy.npz}")
-cli("evaluate-policy-is-demos", "evaluate {p_is_demos.npz}", "{p_is_demos.npz}")
+cli(
+    "evaluate-policy-is-demos",
+    "evaluate {p_is_demos.npz}",
+    "argument POLICY: {p_is_demos.npz} is a demonstrations file",
+)
 cli("evaluate-policy-version", "evaluate {p_version.npz}", "schema version")
 cli("evaluate-policy-nan", "evaluate {p_mean_nan.npz}", "NaN")
 cli("evaluate-policy-pickle", "evaluate {p_pickle.npz}", "Python objects")

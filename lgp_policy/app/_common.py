@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 import gym_coffee
-from lgp_policy._io import check_output_path
+from lgp_policy._io import check_creatable, check_output_path
 
 __all__ = [
     "EXIT_FAILURE",
@@ -317,7 +317,7 @@ def check_output_folder(
                 )
         return present
     try:  # a new folder: its nearest existing parent must be writable
-        check_output_path(path / "x", force=True, what="output folder")
+        check_creatable(path, f"output folder {path}")
     except ValueError as exc:
         raise UsageError(f"argument {flag}: {exc}") from None
     return []

@@ -29,7 +29,7 @@ from lgp_policy.app._common import (
     run_command,
     seed_int,
 )
-from lgp_policy.app.commands import add_subcommands
+from lgp_policy.app.commands import EVAL_SEED_OFFSET, add_subcommands
 
 if TYPE_CHECKING:
     from gym_coffee.demonstrations import Demonstration
@@ -46,15 +46,14 @@ def add_record_subcommand(sub: argparse._SubParsersAction) -> argparse.ArgumentP
             "seed is tried; the seeds used are stored in the file) and save them as one .npz "
             "file (schema: docs/demonstration-format.md)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--n", type=demos_int, default=4, help="number of demonstrations")
+    p.add_argument("--n", type=demos_int, default=4, help="number of demonstrations (default 4)")
     p.add_argument("--out", type=Path, required=True, help="output .npz file")
     p.add_argument(
         "--seed",
         type=seed_int,
         default=0,
-        help="first layout seed (keep it below 10000: evaluation uses 10000+)",
+        help="first layout seed (default 0; keep the seeds below 10000: evaluation uses 10000+)",
     )
     add_force_option(p, "--out and --video files")
     p.add_argument(
@@ -102,6 +101,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     failed = demos.metadata.get("failed_seeds") or []
     if failed:
         print(f"the teacher failed on seeds {failed}; they were skipped")
+    shared = [s for s in demos.seeds if s >= EVAL_SEED_OFFSET]
+    if shared:
+        print(
+            f"note: seeds {shared} are also layouts of `gym-coffee evaluate` (seeds "
+            f"{EVAL_SEED_OFFSET}+S...); an evaluation there is not on held-out layouts",
+            file=sys.stderr,
+        )
     if args.video is not None:
         path = record_video(
             env_id,

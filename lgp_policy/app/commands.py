@@ -72,7 +72,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         "evaluate",
         help="evaluate a policy on held-out layouts (per-stage success)",
         description="Run a policy on layouts from seeds 10000+S.. (disjoint from demonstration "
-        "seeds) of one difficulty level and print per-stage success rates with 95%% Wilson "
+        "seeds) of one difficulty level and print per-stage success rates with 95% Wilson "
         "intervals. The level and physics default to those of the demonstrations the policy "
         "was fitted on (recorded in the policy file).",
     )
@@ -96,7 +96,8 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
         description="Record demonstrations with the scripted teacher, fit the local-GP policy, "
         "evaluate it on new layouts and write the policy, results.json, figures (Figs. 1, 2, 4, "
         "5 of the paper) and a rollout video into --out (a new or empty folder; --force "
-        "replaces the files of an earlier run there and leaves other files alone).",
+        "replaces the files of an earlier run there, keeping them aside until the new run "
+        "completes, and leaves other files alone).",
     )
     p.add_argument(
         "--out",
@@ -113,6 +114,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     add_env_options(p, "the demonstrations and the evaluation layouts")
     _add_policy_options(p)
     add_force_option(p, "files of an earlier run in --out")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_run)
 
     for module, name in (
@@ -246,7 +248,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from lgp_policy.app.evaluation import evaluate_policy_stages, format_results
 
     given = _check_evaluate(args)
-    policy = load_policy(args.policy)
+    try:
+        policy = load_policy(args.policy)
+    except ValueError as exc:  # a bad file: name the argument, as for the other inputs
+        raise UsageError(f"argument POLICY: {exc}") from exc
     env_id, env_kwargs, note = evaluation_env(args, policy, given)
     print(f"evaluating {args.policy} on {env_text(env_id, env_kwargs)}", flush=True)
     if note:
@@ -293,6 +298,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         video=not args.no_video,
         plots=not args.no_plots,
         policy_kwargs=kwargs,
+        progress=not args.no_progress,
         force=bool(stale),  # the earlier run's files: set aside until this one completes
         env_id=env_id,
         env_kwargs=env_kwargs_from_args(args),

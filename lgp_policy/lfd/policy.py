@@ -65,7 +65,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy._io import FileFormatError, MemberSpec, atomic_save_npz, read_npz
+from lgp_policy._io import (
+    FileFormatError,
+    MemberSpec,
+    atomic_save_npz,
+    read_json_member,
+    read_npz,
+)
 from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import (
@@ -1752,8 +1758,9 @@ def _read_postures(
     policy.layout_features_ = feats.astype(float)
 
 
+MAX_METADATA_BYTES = 16 * 2**20
 _SCHEMA = {
-    "metadata": MemberSpec(dtype="U", ndim=0, max_bytes=16 * 2**20),
+    "metadata": MemberSpec(dtype="U", ndim=0, max_bytes=MAX_METADATA_BYTES),
     "phase_grid": MemberSpec(dtype="f", ndim=1, finite=True),
     "mean__*": MemberSpec(dtype="f", ndim=2, finite=True),
     "std__*": MemberSpec(dtype="f", ndim=2, finite=True),
@@ -1785,5 +1792,26 @@ def _read_policy_npz(path: str | os.PathLike[str] | io.BytesIO) -> tuple[str, di
             max_entries=1000,
         )
     except FileFormatError as exc:
+        if _metadata_format(source) == DEMONSTRATIONS_FORMAT:
+            raise PolicyFileError(
+                f"{label} is a demonstrations file ({DEMONSTRATIONS_FORMAT}), not a policy; fit "
+                f"a policy to it first (gym-coffee fit {label} --out policy.npz)"
+            ) from None
         raise PolicyFileError(f"{label} is not a readable policy file: {exc}") from None
     return label, arrays
+
+
+DEMONSTRATIONS_FORMAT = "gym_coffee.demonstrations"
+"""The ``format`` of a gym-coffee demonstrations file (named when one is given as a policy)."""
+
+
+def _metadata_format(source: Any) -> Any:
+    """The ``format`` in a file's JSON ``metadata`` member (bounded read), or ``None``."""
+    try:
+        meta = read_json_member(source, "metadata", max_bytes=MAX_METADATA_BYTES)
+    except (FileFormatError, OSError):
+        return None
+    finally:
+        if isinstance(source, io.BytesIO):
+            source.seek(0)
+    return meta.get("format") if isinstance(meta, dict) else None

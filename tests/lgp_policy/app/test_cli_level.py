@@ -112,6 +112,16 @@ def test_evaluate_help_lists_the_levels(capsys):
         assert name in out and env_id in out
 
 
+def test_record_notes_seeds_that_evaluation_uses(tmp_path, capsys):
+    out = tmp_path / "d.npz"
+    assert main(["record", "--n", "1", "--seed", "10000", "--out", str(out), "--no-progress"]) == 0
+    assert (
+        "note: seeds [10000] are also layouts of `gym-coffee evaluate`" in capsys.readouterr().err
+    )
+    assert main(["record", "--n", "1", "--seed", "9000", "--out", str(out), "--force"]) == 0
+    assert "note" not in capsys.readouterr().err
+
+
 def test_record_on_the_hard_level(tmp_path, capsys):
     """A real recording: the demonstration file says it came from the hard level's env."""
     out = tmp_path / "hard.npz"
@@ -138,6 +148,16 @@ def test_run_passes_the_chosen_level_to_the_pipeline(options, level, tmp_path, m
     monkeypatch.setattr(pipeline, "run_pipeline", lambda out, **kw: seen.append(kw["env_id"]))
     assert main(["run", "--out", str(tmp_path / "r"), *options]) == 0
     assert seen == [gym_coffee.LEVELS[level]]
+
+
+@pytest.mark.parametrize(("options", "progress"), [([], True), (["--no-progress"], False)])
+def test_run_no_progress(options, progress, tmp_path, monkeypatch):
+    from lgp_policy.app import pipeline
+
+    seen: list[bool] = []
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda out, **kw: seen.append(kw["progress"]))
+    assert main(["run", "--out", str(tmp_path / "r"), *options]) == 0
+    assert seen == [progress]
 
 
 @pytest.mark.parametrize(
