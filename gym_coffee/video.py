@@ -135,7 +135,9 @@ def write_video(
         else:
             # Pillow, each frame quantised to its own 256-colour palette by the fast octree
             # (~1 ms a 320x240 frame; Pillow's default median cut took ~8 ms and looks the same
-            # on these scenes); duration per frame in milliseconds; loop=0 = loop forever.
+            # on these scenes); duration per frame in milliseconds, rounded to the GIF's
+            # centiseconds here (Pillow truncates: 1000 / (25 / 3) = 119.99.. became 110 ms, a
+            # video 9% too fast); loop=0 = loop forever.
             from PIL import Image
 
             gif = [
@@ -147,7 +149,7 @@ def write_video(
                 format="GIF",
                 save_all=True,
                 append_images=gif[1:],
-                duration=1000.0 / float(fps),
+                duration=10 * max(1, round(100.0 / float(fps))),
                 loop=0,
             )
     return path

@@ -100,6 +100,20 @@ def test_write_video_formats(tmp_path, suffix):
         write_video(path, frames, overwrite=False)
 
 
+@pytest.mark.parametrize(("fps", "ms"), [(25 / 3, 120), (12.5, 80), (20, 50), (30, 30)])
+def test_gif_frames_last_the_frame_period_to_the_centisecond(tmp_path, fps, ms):
+    """GIF durations are centiseconds; Pillow truncates, so 1000 / (25 / 3) = 119.99.. ms gave
+    110 ms frames (``gym-coffee run``'s video ran 9% fast) before it was rounded."""
+    from PIL import Image
+
+    from gym_coffee.video import write_video
+
+    frames = [np.full((8, 8, 3), 40 * i, dtype=np.uint8) for i in range(3)]
+    path = write_video(tmp_path / "v.gif", frames, fps=fps)
+    with Image.open(path) as gif:
+        assert gif.info["duration"] == ms
+
+
 def test_write_video_errors(tmp_path):
     from gym_coffee.video import write_video
 
