@@ -40,6 +40,9 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=30)
     ap.add_argument("--only", default=None, help="one perturbation name")
     args = ap.parse_args()
+    for name in ("demos", "episodes"):
+        if getattr(args, name) < 1:
+            ap.error(f"argument --{name}: expected an integer >= 1, got {getattr(args, name)}")
     env = gym.make(gym_coffee.ENV_ID)
     demos = gym_coffee.collect_demonstrations(env, n=args.demos, seed=0)
     env.close()

@@ -205,6 +205,11 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=50)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    for name in ("demos", "episodes"):
+        if getattr(args, name) < 1:
+            ap.error(f"argument --{name}: expected an integer >= 1, got {getattr(args, name)}")
+    if args.seed < 0:
+        ap.error(f"argument --seed: expected an integer >= 0, got {args.seed}")
     r = run(args.demos, args.episodes, args.seed)
     print(
         f"{ENV_ID}, {args.demos} demonstrations, {args.episodes} held-out layouts: "
