@@ -8,6 +8,8 @@ Two things every file of the task package needs (demonstrations, videos, dataset
   trusting any size in it: the archive's size, each member's declared (uncompressed) size in the
   zip directory and the ``.npy`` header's shape and dtype are all checked against limits *before*
   anything is decompressed, and only the members asked for are ever read.
+* :func:`parse_json` -- strict JSON: no ``NaN``/``Infinity``, no numbers that overflow a float,
+  nesting bombs refused.
 
 (``lgp_policy`` has its own file helper; ``gym_coffee`` must not import ``lgp_policy``.)
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import math
 import os
 import tempfile
@@ -29,7 +32,7 @@ import numpy as np
 from numpy.lib import format as npy_format
 from numpy.typing import NDArray
 
-__all__ = ["FileFormatError", "NpzReader", "atomic_output", "refuse_existing"]
+__all__ = ["FileFormatError", "NpzReader", "atomic_output", "parse_json", "refuse_existing"]
 
 #: Largest ``.npy`` header read (bytes); numpy's own default limit.
 MAX_NPY_HEADER = 10_000
@@ -39,6 +42,41 @@ _ALLOWED_KINDS = frozenset("biufU")
 
 class FileFormatError(ValueError):
     """A file cannot be read as what it claims to be; the message says what is wrong."""
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text[:40]} overflows a float")
+    return value
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-")) > 308:  # larger than any float (and slow to convert)
+        raise ValueError(f"an integer of {len(text)} digits overflows a float")
+    return int(text)
+
+
+def parse_json(text: str, *, where: str) -> Any:
+    """Parse JSON text strictly: no ``NaN``/``Infinity``, no numbers that overflow a float, no
+    nesting deeper than Python's recursion limit.
+
+    Raises:
+        FileFormatError: ``"<where>: expected strict JSON ..."`` naming the problem.
+    """
+    try:
+        return json.loads(
+            text, parse_constant=_no_constant, parse_float=_finite_float, parse_int=_bounded_int
+        )
+    except (ValueError, RecursionError) as exc:
+        raise FileFormatError(
+            f"{where}: expected strict JSON (no NaN/Infinity, no numbers that overflow a float, "
+            f"bounded nesting): {type(exc).__name__}: {str(exc)[:200]}"
+        ) from None
 
 
 def refuse_existing(path: Path, overwrite: bool, hint: str = "pass overwrite=True") -> None:

@@ -391,7 +391,7 @@ def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
     # The header checks of a demonstration file (format, version, objects, action type).
     from gym_coffee.demonstrations import _parse_metadata
 
-    meta = _parse_metadata(arrays["metadata"])
+    meta = _parse_metadata(arrays["metadata"], where="data.attrs['gym_coffee_metadata']")
     try:
         keys = json.loads(r.text_attr(data, "gym_coffee_obs_keys"))
     except json.JSONDecodeError as exc:

@@ -1,0 +1,87 @@
+"""Hostile demonstration files (.npz) and robomimic HDF5 files: each is refused with one clear
+:class:`DemonstrationFormatError` naming the file and what was expected, quickly and with bounded
+memory, without following links to other files, and without writing anything.
+
+Every file is crafted here in ``tmp_path`` from a small synthetic demonstration set.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_demonstrations import make_demo  # the synthetic demonstrations of the file tests
+
+from gym_coffee.demonstrations import DemonstrationFormatError, DemonstrationSet
+
+
+@pytest.fixture
+def demos() -> DemonstrationSet:
+    """Two demonstrations of the same length (so that one's arrays fit the other's shapes)."""
+    rng = np.random.default_rng(11)
+    return DemonstrationSet(
+        [make_demo(rng, 6, seed=1), make_demo(rng, 6, seed=2)], metadata={"who": "synthetic"}
+    )
+
+
+def save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> Path:
+    np.savez(path, **arrays)  # type: ignore[arg-type]
+    return path
+
+
+def load_error(source, **kwargs) -> str:
+    with pytest.raises(DemonstrationFormatError) as info:
+        DemonstrationSet.load(source, **kwargs)
+    return str(info.value)
+
+
+def cli(args: list[str]) -> int:
+    from lgp_policy.app.cli import main
+
+    return main(args)
+
+
+# -- metadata JSON is parsed strictly -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [("NaN", "NaN"), ("Infinity", "Infinity"), ("-Infinity", "-Infinity"), ("1e400", "1e400")],
+)
+def test_metadata_with_nan_infinity_or_overflow_is_refused(demos, tmp_path, value, shown):
+    arrays = demos.to_arrays()
+    text = str(arrays["metadata"])
+    arrays["metadata"] = np.array(text[:-1] + f', "note": {value}}}')
+    path = save_arrays(tmp_path / "nan.npz", arrays)
+    msg = load_error(path)
+    assert msg.startswith(str(path)) and "'metadata'" in msg and shown in msg
+    assert "expected strict JSON" in msg
+    # The command line reports the bad file (exit 2) instead of failing later in the export.
+    out = tmp_path / "x.hdf5"
+    assert cli(["export", str(path), "--format", "robomimic", "--out", str(out)]) == 2
+    assert not out.exists()
+
+
+def test_metadata_with_a_huge_integer_is_refused(demos, tmp_path):
+    arrays = demos.to_arrays()
+    text = str(arrays["metadata"])
+    arrays["metadata"] = np.array(text[:-1] + ', "note": ' + "9" * 400 + "}")
+    msg = load_error(save_arrays(tmp_path / "big.npz", arrays))
+    assert "'metadata'" in msg and "expected strict JSON" in msg
+
+
+def test_robomimic_metadata_with_nan_is_refused(demos, tmp_path):
+    import h5py
+
+    from gym_coffee.datasets import export_robomimic, import_robomimic
+
+    path = export_robomimic(demos, tmp_path / "d.hdf5")
+    with h5py.File(path, "a") as f:
+        text = bytes(f["data"].attrs["gym_coffee_metadata"]).decode()
+        f["data"].attrs["gym_coffee_metadata"] = np.bytes_(text[:-1] + ', "note": NaN}')
+    with pytest.raises(DemonstrationFormatError) as info:
+        import_robomimic(path)
+    msg = str(info.value)
+    assert msg.startswith(str(path)) and "data.attrs['gym_coffee_metadata']" in msg
+    assert "NaN" in msg
