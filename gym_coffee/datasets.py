@@ -321,14 +321,33 @@ class _H5Reader:
         self.budget = int(max_bytes)
 
     def node(self, group: Any, name: str) -> Any:
-        link = group.get(name, getlink=True)
-        if link is None:
-            raise DemonstrationFormatError(f"missing {group.name}/{name}")
-        if not isinstance(link, self.h5py.HardLink):
-            raise DemonstrationFormatError(
-                f"{group.name}/{name} is a {type(link).__name__}; links are not followed"
-            )
-        return group[name]
+        """The object at the relative path ``name`` under ``group``, one component at a time:
+        every component must be a hard link (an object of this file), never a soft link (a
+        path, which may lead anywhere in the file) or an external link (another file)."""
+        parts = name.split("/")
+        if not all(part and part != "." for part in parts):
+            raise DemonstrationFormatError(f"{group.name}: {name!r} is not a relative path")
+        node, where = group, group.name.rstrip("/")
+        for i, part in enumerate(parts):
+            where = f"{where}/{part}"
+            if i and not isinstance(node, self.h5py.Group):
+                raise DemonstrationFormatError(f"{node.name} is not a group")
+            try:
+                link = node.get(part, getlink=True)
+            except TypeError:  # h5py: a user-defined link type
+                raise DemonstrationFormatError(
+                    f"{where} is a link of an unknown type; links are not followed"
+                ) from None
+            if link is None:
+                raise DemonstrationFormatError(f"missing {where}")
+            if not isinstance(link, self.h5py.HardLink):
+                kind = type(link).__name__
+                raise DemonstrationFormatError(
+                    f"{where} is {'an' if kind[0] in 'AEIOU' else 'a'} {kind}; links to other "
+                    "files or paths are not followed"
+                )
+            node = node[part]
+        return node
 
     def group(self, group: Any, name: str) -> Any:
         node = self.node(group, name)

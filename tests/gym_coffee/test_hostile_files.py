@@ -85,3 +85,63 @@ def test_robomimic_metadata_with_nan_is_refused(demos, tmp_path):
     msg = str(info.value)
     assert msg.startswith(str(path)) and "data.attrs['gym_coffee_metadata']" in msg
     assert "NaN" in msg
+
+
+# -- robomimic HDF5: links are never followed, at any component of a path -------------------------
+
+
+@pytest.fixture
+def exported(demos, tmp_path) -> tuple[Path, Path]:
+    """(a file to edit, another valid file with the same layout but other values)."""
+    from gym_coffee.datasets import export_robomimic
+
+    rng = np.random.default_rng(99)
+    other = DemonstrationSet(
+        [make_demo(rng, 6, seed=1), make_demo(rng, 6, seed=2)], metadata={"who": "synthetic"}
+    )
+    target = export_robomimic(other, tmp_path / "elsewhere" / "other.hdf5")
+    return export_robomimic(demos, tmp_path / "d.hdf5"), target
+
+
+def h5_error(path: Path) -> str:
+    from gym_coffee.datasets import import_robomimic
+
+    with pytest.raises(DemonstrationFormatError) as info:
+        import_robomimic(path)
+    msg = str(info.value)
+    assert msg.startswith(str(path))
+    return msg
+
+
+@pytest.mark.parametrize(
+    ("where", "kind", "target"),
+    [
+        ("data/demo_0/obs", "ExternalLink", "/data/demo_0/obs"),  # an intermediate group
+        ("data/demo_0/gym_coffee/object_pos", "ExternalLink", "/data/demo_0/gym_coffee/object_pos"),
+        ("data/demo_0/next_obs/flat", "ExternalLink", "/data/demo_0/next_obs/flat"),  # final
+        ("data", "ExternalLink", "/data"),
+        ("data/demo_1/gym_coffee", "SoftLink", "/data/demo_0/gym_coffee"),  # intermediate
+        ("data/demo_1/actions", "SoftLink", "/data/demo_0/actions"),  # final
+        ("data/demo_1/obs/flat", "SoftLink", "/data/demo_0/obs/flat"),
+        ("data/demo_1", "SoftLink", "/data/demo_0"),
+    ],
+)
+def test_robomimic_links_are_refused_at_every_component(exported, where, kind, target):
+    """The link would resolve to data that import fine (the other file is a valid export, the
+    soft link points at a demonstration of the same length): the import must still fail, so
+    that no other file, and no other part of this one, is read through a link."""
+    import h5py
+
+    from gym_coffee.datasets import import_robomimic
+
+    path, other = exported
+    assert import_robomimic(other)  # a good file to link to
+    with h5py.File(path, "a") as f:
+        del f[where]
+        if kind == "ExternalLink":
+            f[where] = h5py.ExternalLink(str(other), target)
+        else:
+            f[where] = h5py.SoftLink(target)
+    msg = h5_error(path)
+    assert f"/{where} is {'an' if kind == 'ExternalLink' else 'a'} {kind}; links " in msg
+    assert "are not followed" in msg
