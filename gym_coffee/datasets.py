@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gym_coffee._io import FileFormatError, atomic_output, refuse_existing
+from gym_coffee._io import FileFormatError, atomic_output, parse_json, refuse_existing
 from gym_coffee.demonstrations import (
     ACTION_DIMS,
     DEFAULT_MAX_BYTES,
@@ -68,6 +68,8 @@ EXTRA = "datasets"
 """The optional dependency group that provides h5py and minari."""
 _DEMO_NAME = re.compile(r"demo_(\d+)")
 _MAX_DEMOS = 1_000_000
+_MAX_KEY_CHARS = 64
+"""Longest observation key name (``obs/<key>``)."""
 
 
 def _require(module: str, what: str) -> ModuleType:
@@ -104,13 +106,19 @@ def obs_keys(demos: DemonstrationSet) -> list[tuple[str, int, int]]:
     return sorted(((str(k), int(v[0]), int(v[1])) for k, v in slices.items()), key=lambda p: p[1])
 
 
+def _plain_name(name: Any) -> bool:
+    """Whether ``name`` can be an observation key: an identifier of at most
+    :data:`_MAX_KEY_CHARS` characters (it becomes an HDF5 path component, ``obs/<key>``)."""
+    return isinstance(name, str) and name.isidentifier() and len(name) <= _MAX_KEY_CHARS
+
+
 def _covers(slices: Any, obs_dim: int) -> bool:
     """Whether ``slices`` (name -> [start, stop]) tile ``range(obs_dim)`` with valid names."""
     if not isinstance(slices, Mapping) or not slices:
         return False
     parts = []
     for name, value in slices.items():
-        if not (isinstance(name, str) and name.isidentifier() and name != "flat"):
+        if not (_plain_name(name) and name != "flat"):
             return False
         if not (
             isinstance(value, (list, tuple))
@@ -411,17 +419,12 @@ def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
     from gym_coffee.demonstrations import _parse_metadata
 
     meta = _parse_metadata(arrays["metadata"], where="data.attrs['gym_coffee_metadata']")
-    try:
-        keys = json.loads(r.text_attr(data, "gym_coffee_obs_keys"))
-    except json.JSONDecodeError as exc:
-        raise DemonstrationFormatError(f"data.attrs['gym_coffee_obs_keys']: {exc}") from None
     obs_dim = meta.get("obs_dim")
-    if not _covers({k[0]: [k[1], k[2]] for k in keys if _is_key(k)}, obs_dim or 0) and not (
-        keys == [["flat", 0, obs_dim]]
-    ):
+    if obs_dim is None:
         raise DemonstrationFormatError(
-            f"data.attrs['gym_coffee_obs_keys'] do not tile the observation: {keys!r:.200}"
+            "data.attrs['gym_coffee_metadata'] has no 'obs_dim'; expected the observation size"
         )
+    keys = _parse_obs_keys(r.text_attr(data, "gym_coffee_obs_keys"), obs_dim)
     names = list(data.keys())
     if len(names) > _MAX_DEMOS or not all(_DEMO_NAME.fullmatch(n) for n in names):
         raise DemonstrationFormatError("data holds groups other than demo_<i>")
@@ -471,8 +474,45 @@ _EXTRA_SHAPES: dict[str, tuple[int, ...]] = {
 }
 
 
-def _is_key(k: Any) -> bool:
-    return isinstance(k, list) and len(k) == 3 and isinstance(k[0], str)
+def _parse_obs_keys(text: str, obs_dim: int) -> list[tuple[str, int, int]]:
+    """The ``gym_coffee_obs_keys`` attribute: a JSON list of ``[name, start, stop]`` that tile
+    the observation (or the one key ``["flat", 0, obs_dim]``); names are plain, short names."""
+    where = "data.attrs['gym_coffee_obs_keys']"
+    expected = (
+        f"expected a JSON list of [name, start, stop] entries (names: identifiers of at most "
+        f"{_MAX_KEY_CHARS} characters) that tile the observation's {obs_dim} values"
+    )
+    try:
+        keys = parse_json(text, where=where)
+    except FileFormatError as exc:
+        raise DemonstrationFormatError(f"{exc}; {expected}") from None
+    if not isinstance(keys, list) or not keys or len(keys) > obs_dim:
+        raise DemonstrationFormatError(f"{where} is {text[:100]!r}; {expected}")
+    out = []
+    for key in keys:
+        if not (
+            isinstance(key, list)
+            and len(key) == 3
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in key[1:])
+        ):
+            what = f"a list of {len(key)} items" if isinstance(key, list) else type(key).__name__
+            raise DemonstrationFormatError(
+                f"{where} has an entry ({what}) that is not [name, start, stop] with integer "
+                f"start and stop; {expected}"
+            )
+        if not _plain_name(key[0]):
+            raise DemonstrationFormatError(
+                f"{where} has a key name {str(key[0])[:100]!r} that is not a plain name; {expected}"
+            )
+        out.append((key[0], key[1], key[2]))
+    if out != [("flat", 0, obs_dim)] and (
+        len({name for name, _, _ in out}) != len(out)
+        or not _covers({name: [start, stop] for name, start, stop in out}, obs_dim)
+    ):
+        raise DemonstrationFormatError(
+            f"{where} do not tile the observation: {text[:200]}; {expected} (each once)"
+        )
+    return sorted(out, key=lambda k: k[1])
 
 
 def _int_attr(node: Any, name: str) -> int:

@@ -7,6 +7,7 @@ Every file is crafted here in ``tmp_path`` from a small synthetic demonstration 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -145,3 +146,56 @@ def test_robomimic_links_are_refused_at_every_component(exported, where, kind, t
     msg = h5_error(path)
     assert f"/{where} is {'an' if kind == 'ExternalLink' else 'a'} {kind}; links " in msg
     assert "are not followed" in msg
+
+
+# -- robomimic HDF5: the observation keys attribute -----------------------------------------------
+
+
+def set_text_attr(path: Path, name: str, text: str | bytes, node: str = "data") -> None:
+    import h5py
+
+    with h5py.File(path, "a") as f:
+        f[node].attrs[name] = np.bytes_(text)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "5",
+        "NaN",
+        '"flat"',
+        "{}",
+        "[]",
+        "[5]",
+        '[["flat", 0, 41], 5]',  # a valid key, then junk
+        "[" * 20_000 + "]" * 20_000,  # a nesting bomb
+        "[[" * 500 + "]]" * 500,  # deep, but within the recursion limit
+        '[["flat", "0", 41]]',
+        '[["flat", 0, 41.0]]',
+        '[["flat", false, 41]]',
+        '[["flat", 0, 1e400]]',
+        "[[1, 0, 41]]",
+        '[["a", 0, 20], ["a", 20, 41]]',  # the same key twice
+        '[["a", 0, 41], ["a", 0, 41]]',
+        '[["a", 0, 20], ["b", 21, 41]]',  # a gap
+        '[["a", 0, 40]]',  # too short
+    ],
+)
+def test_robomimic_obs_keys_of_the_wrong_type_are_named(exported, text):
+    path, _ = exported
+    set_text_attr(path, "gym_coffee_obs_keys", text)
+    msg = h5_error(path)
+    assert "data.attrs['gym_coffee_obs_keys']" in msg and "expected" in msg, msg
+    assert "not a readable HDF5 file" not in msg
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["a/b", "/data/demo_0/actions", "../x", ".", "", "x" * 65, "two words", "flat\x00"],
+)
+def test_robomimic_obs_key_names_must_be_plain_short_names(exported, name):
+    """A key becomes a path component (obs/<key>): no '/', nothing but a short identifier."""
+    path, _ = exported
+    set_text_attr(path, "gym_coffee_obs_keys", json.dumps([[name, 0, 41]]))
+    msg = h5_error(path)
+    assert "data.attrs['gym_coffee_obs_keys']" in msg and "plain name" in msg, msg
