@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import json
+import math
 import os
 import re
 import shutil
@@ -46,6 +47,7 @@ from gym_coffee._io import FileFormatError, atomic_output, parse_json, refuse_ex
 from gym_coffee.demonstrations import (
     ACTION_DIMS,
     DEFAULT_MAX_BYTES,
+    MAX_METADATA_CHARS,
     N_JOINTS,
     STAGE_NAMES,
     Demonstration,
@@ -70,6 +72,14 @@ _DEMO_NAME = re.compile(r"demo_(\d+)")
 _MAX_DEMOS = 1_000_000
 _MAX_KEY_CHARS = 64
 """Longest observation key name (``obs/<key>``)."""
+_MAX_KEYS_BYTES = 1 << 16
+"""Longest ``gym_coffee_obs_keys`` JSON text read (bytes)."""
+_MAX_ATTRS_BYTES = 4 * MAX_METADATA_CHARS
+"""Most bytes all attributes of one group may take in the file (``data``: the metadata JSON,
+at most ``MAX_METADATA_CHARS``, ``env_args``, the observation keys); checked before any of them is
+touched, since HDF5 decodes a whole attribute even to find it by name."""
+_MAX_CHUNK_BYTES = 16 << 20
+"""Largest chunk of a chunked dataset (bytes) when the dataset itself is smaller."""
 
 
 def _require(module: str, what: str) -> ModuleType:
@@ -285,9 +295,11 @@ def import_robomimic(
 
     The arrays come back exactly (same values and dtypes). The file is checked like a
     demonstration file (:meth:`DemonstrationSet.load`): only the datasets of the layout are read,
-    each one's shape and dtype are checked before its data are read, links to other files,
-    external storage and virtual datasets are refused, at most ``max_bytes`` are read, and every
-    value is validated before anything is built.
+    each one's shape and dtype are checked before its data are read, soft and external links (at
+    any component of a path), external storage, virtual and compressed (filtered) datasets are
+    refused, the size of every attribute is checked before it is read (the metadata JSON: at
+    most ``MAX_METADATA_CHARS`` bytes), at most ``max_bytes`` are read, and every value is
+    validated before anything is built.
 
     Raises:
         ImportError: h5py is not installed (the ``datasets`` extra).
@@ -372,6 +384,12 @@ class _H5Reader:
             raise DemonstrationFormatError(f"{ds.name} is not a dataset")
         if ds.is_virtual or ds.external:
             raise DemonstrationFormatError(f"{ds.name} keeps its data in other files; refused")
+        if ds.id.get_create_plist().get_nfilters():
+            raise DemonstrationFormatError(
+                f"{ds.name} is compressed or filtered ({ds.compression or 'a filter'}); "
+                "expected a plain dataset as export_robomimic writes (a filter could inflate "
+                "without bound)"
+            )
         if ds.dtype.kind not in kinds or ds.dtype.names is not None or ds.dtype.subdtype:
             raise DemonstrationFormatError(f"{ds.name} has dtype {ds.dtype}; expected numbers")
         got = tuple(ds.shape)
@@ -380,40 +398,93 @@ class _H5Reader:
         ):
             want = tuple("*" if w is None else w for w in shape)
             raise DemonstrationFormatError(f"{ds.name} has shape {got}; expected {want}")
-        n_bytes = int(np.prod(got, dtype=np.int64)) * ds.dtype.itemsize
+        n_bytes = math.prod(got) * ds.dtype.itemsize
         if n_bytes > self.budget:
             raise DemonstrationFormatError(
                 f"{ds.name} ({n_bytes} bytes) would exceed the limit of bytes read"
             )
+        if ds.chunks is not None:
+            chunk_bytes = math.prod(ds.chunks) * ds.dtype.itemsize
+            if chunk_bytes > max(n_bytes, _MAX_CHUNK_BYTES):
+                raise DemonstrationFormatError(
+                    f"{ds.name} has chunks of {chunk_bytes} bytes; expected at most "
+                    f"{max(n_bytes, _MAX_CHUNK_BYTES)} (16 MiB, or the dataset's own size)"
+                )
         self.budget -= n_bytes
         return np.asarray(ds[()])
 
-    def text_attr(self, node: Any, name: str) -> str:
-        """A fixed-length byte-string attribute, its size checked before it is read."""
+    def _attr(self, node: Any, name: str, kinds: str, max_bytes: int, expected: str) -> Any:
+        """The attribute's value, after checking its type, shape and size (from its header,
+        with h5py's low-level API) against ``kinds`` and ``max_bytes``; ``None`` if missing."""
+        self.check_attrs_size(node)
         if name not in node.attrs:
-            raise DemonstrationFormatError(f"missing text attribute {node.name}.attrs[{name!r}]")
+            return None
         attr = node.attrs.get_id(name)
-        if attr.dtype.kind != "S" or attr.shape not in ((), (1,)):
+        where = f"{node.name}.attrs[{name!r}]"
+        dtype, shape = attr.dtype, attr.shape
+        if dtype.kind not in kinds or dtype.names is not None or shape not in ((), (1,)):
             raise DemonstrationFormatError(
-                f"{node.name}.attrs[{name!r}] has type {attr.dtype} {attr.shape}; expected one "
-                "fixed-length byte string"
+                f"{where} has type {dtype} and shape {shape}; expected {expected}"
             )
-        if attr.dtype.itemsize > self.budget:
-            raise DemonstrationFormatError(f"{node.name}.attrs[{name!r}] is too long")
-        self.budget -= attr.dtype.itemsize
-        value = np.asarray(node.attrs[name]).reshape(-1)[0]
+        n_bytes = max(dtype.itemsize, attr.get_storage_size())
+        if n_bytes > min(max_bytes, self.budget):
+            raise DemonstrationFormatError(
+                f"{where} has {n_bytes} bytes; expected at most {min(max_bytes, self.budget)} "
+                f"({expected})"
+            )
+        self.budget -= n_bytes
+        return np.asarray(node.attrs[name]).reshape(-1)[0]
+
+    def check_attrs_size(self, node: Any) -> None:
+        """Refuse a node whose attributes take more than :data:`_MAX_ATTRS_BYTES` in the file,
+        from the object's header information (no attribute is decoded)."""
+        info = self.h5py.h5o.get_info(node.id)
+        attrs = info.meta_size.attr
+        n_bytes = int(info.hdr.space.total) + int(attrs.heap_size) + int(attrs.index_size)
+        if n_bytes > _MAX_ATTRS_BYTES:
+            raise DemonstrationFormatError(
+                f"{node.name}.attrs take {n_bytes} bytes in the file; expected at most "
+                f"{_MAX_ATTRS_BYTES} (e.g. 'gym_coffee_metadata' holds at most "
+                f"{MAX_METADATA_CHARS} bytes of JSON); no attribute was read"
+            )
+
+    def text_attr(self, node: Any, name: str, max_bytes: int) -> str:
+        """A fixed-length byte-string attribute of at most ``max_bytes``, its size checked
+        before it is read."""
+        value = self._attr(node, name, "S", max_bytes, "one fixed-length byte string")
+        if value is None:
+            raise DemonstrationFormatError(f"missing text attribute {node.name}.attrs[{name!r}]")
         return bytes(value).decode("utf-8", errors="replace")
+
+    def int_attr(self, node: Any, name: str) -> int:
+        """A scalar integer attribute."""
+        value = self._attr(node, name, "iu", 8, "one integer")
+        if value is None:
+            raise DemonstrationFormatError(f"missing {node.name}.attrs[{name!r}]; expected int")
+        return int(value)
+
+    def bool_attr(self, node: Any, name: str, default: bool) -> bool:
+        """A scalar boolean attribute (or 0/1); ``default`` if missing."""
+        value = self._attr(node, name, "biu", 8, "one boolean")
+        if value is None:
+            return default
+        if value not in (0, 1):
+            raise DemonstrationFormatError(
+                f"{node.name}.attrs[{name!r}] is {value!r}; expected one boolean"
+            )
+        return bool(value)
 
 
 def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
     data = r.group(f, "data")
-    try:
-        meta_text = r.text_attr(data, "gym_coffee_metadata")
-    except DemonstrationFormatError:
+    r.check_attrs_size(data)  # before any name lookup, which decodes a whole attribute
+    if "gym_coffee_metadata" not in data.attrs:
         raise DemonstrationFormatError(
             "has no data.attrs['gym_coffee_metadata']: not written by "
             "gym_coffee.datasets.export_robomimic (only its files can be imported)"
-        ) from None
+        )
+    # The metadata of a demonstration file: at most MAX_METADATA_CHARS (ASCII JSON) bytes.
+    meta_text = r.text_attr(data, "gym_coffee_metadata", MAX_METADATA_CHARS)
     arrays: dict[str, NDArray[Any]] = {"metadata": np.array(meta_text)}
     # The header checks of a demonstration file (format, version, objects, action type).
     from gym_coffee.demonstrations import _parse_metadata
@@ -424,9 +495,11 @@ def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
         raise DemonstrationFormatError(
             "data.attrs['gym_coffee_metadata'] has no 'obs_dim'; expected the observation size"
         )
-    keys = _parse_obs_keys(r.text_attr(data, "gym_coffee_obs_keys"), obs_dim)
+    keys = _parse_obs_keys(r.text_attr(data, "gym_coffee_obs_keys", _MAX_KEYS_BYTES), obs_dim)
+    if len(data) > _MAX_DEMOS:  # counted before the names are listed
+        raise DemonstrationFormatError(f"data holds {len(data)} groups; expected <= {_MAX_DEMOS}")
     names = list(data.keys())
-    if len(names) > _MAX_DEMOS or not all(_DEMO_NAME.fullmatch(n) for n in names):
+    if not all(_DEMO_NAME.fullmatch(n) for n in names):
         raise DemonstrationFormatError("data holds groups other than demo_<i>")
     names.sort(key=lambda n: int(n[5:]))
     if names != [f"demo_{i}" for i in range(len(names))] or not names:
@@ -436,12 +509,12 @@ def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
     lengths, seeds, success = [], [], []
     for name in names:
         group = r.group(data, name)
-        n = _int_attr(group, "num_samples")
+        n = r.int_attr(group, "num_samples")
         if n < 1:
             raise DemonstrationFormatError(f"{group.name}.attrs['num_samples'] is {n}; need >= 1")
         lengths.append(n + 1)
-        seeds.append(_int_attr(group, "seed"))
-        success.append(bool(group.attrs.get("success", False)))
+        seeds.append(r.int_attr(group, "seed"))
+        success.append(r.bool_attr(group, "success", default=False))
         obs = [r.read(group, f"obs/{k}", (n, stop - start)) for k, start, stop in keys]
         last = [r.read(group, f"next_obs/{k}", (n, stop - start))[-1:] for k, start, stop in keys]
         observations = np.concatenate([np.hstack(obs), np.hstack(last)])
@@ -513,13 +586,6 @@ def _parse_obs_keys(text: str, obs_dim: int) -> list[tuple[str, int, int]]:
             f"{where} do not tile the observation: {text[:200]}; {expected} (each once)"
         )
     return sorted(out, key=lambda k: k[1])
-
-
-def _int_attr(node: Any, name: str) -> int:
-    value = node.attrs.get(name)
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise DemonstrationFormatError(f"{node.name}.attrs[{name!r}] is {value!r}; expected int")
-    return int(value)
 
 
 # ------------------------------------------------------------------------------------------------

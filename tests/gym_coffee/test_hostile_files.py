@@ -154,7 +154,7 @@ def test_robomimic_links_are_refused_at_every_component(exported, where, kind, t
 def set_text_attr(path: Path, name: str, text: str | bytes, node: str = "data") -> None:
     import h5py
 
-    with h5py.File(path, "a") as f:
+    with h5py.File(path, "a", libver="latest") as f:  # "latest": allows attributes > 64 KiB
         f[node].attrs[name] = np.bytes_(text)
 
 
@@ -199,3 +199,94 @@ def test_robomimic_obs_key_names_must_be_plain_short_names(exported, name):
     set_text_attr(path, "gym_coffee_obs_keys", json.dumps([[name, 0, 41]]))
     msg = h5_error(path)
     assert "data.attrs['gym_coffee_obs_keys']" in msg and "plain name" in msg, msg
+
+
+# -- robomimic HDF5: attribute and dataset sizes are checked before reading -----------------------
+
+
+def with_dense_attributes(path: Path) -> Path:
+    """Copy an exported file into one whose groups can hold attributes over 64 KiB."""
+    import h5py
+
+    out = path.with_name("dense.hdf5")
+    with h5py.File(path, "r") as src, h5py.File(out, "w", libver="latest") as dst:
+        data = dst.create_group("data")
+        for key, value in src["data"].attrs.items():
+            data.attrs[key] = value
+        for name in src["data"]:
+            src.copy(src["data"][name], data, name)
+    return out
+
+
+def test_robomimic_huge_metadata_attribute_is_refused_unread(exported):
+    import h5py
+
+    from gym_coffee.datasets import import_robomimic
+    from gym_coffee.demonstrations import MAX_METADATA_CHARS
+
+    path = with_dense_attributes(exported[0])
+    assert import_robomimic(path)  # the copy itself is fine
+    with h5py.File(path, "a") as f:
+        text = bytes(f["data"].attrs["gym_coffee_metadata"]).decode()
+        padded = text[:-1] + ', "pad": "' + "x" * MAX_METADATA_CHARS + '"}'
+        f["data"].attrs["gym_coffee_metadata"] = np.bytes_(padded)
+    msg = h5_error(path)
+    assert "/data.attrs['gym_coffee_metadata'] has " in msg
+    assert f"expected at most {MAX_METADATA_CHARS}" in msg
+
+
+def test_robomimic_attributes_too_big_for_any_export_are_refused_before_any_is_decoded(exported):
+    """HDF5 decodes a whole attribute even to find it by name: the total size of a group's
+    attributes is checked first, from the object's header information."""
+    path = with_dense_attributes(exported[0])
+    set_text_attr(path, "padding", b"x" * (5 << 20))
+    msg = h5_error(path)
+    assert "/data.attrs take " in msg and "no attribute was read" in msg
+    assert "'gym_coffee_metadata' holds at most 1048576 bytes" in msg
+
+
+def test_robomimic_huge_obs_keys_attribute_is_refused_unread(exported):
+    path = with_dense_attributes(exported[0])
+    text = '[["flat", 0, 41]' + " " * 200_000 + "]"
+    set_text_attr(path, "gym_coffee_obs_keys", text)
+    msg = h5_error(path)
+    assert f"/data.attrs['gym_coffee_obs_keys'] has {len(text)} bytes; expected at most" in msg
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "expected"),
+    [
+        ("num_samples", np.arange(5000), "expected one integer"),
+        ("num_samples", np.bytes_("5"), "expected one integer"),
+        ("num_samples", 5.0, "expected one integer"),
+        ("seed", np.zeros((80, 80), np.int64), "expected one integer"),
+        ("success", np.ones(30_000, bool), "expected one boolean"),
+        ("success", np.int64(7), "expected one boolean"),
+    ],
+)
+def test_robomimic_demo_attributes_are_checked_before_reading(exported, name, value, expected):
+    import h5py
+
+    path = exported[0]
+    with h5py.File(path, "a") as f:
+        f["data/demo_1"].attrs[name] = value
+    msg = h5_error(path)
+    assert f"/data/demo_1.attrs[{name!r}]" in msg and expected in msg, msg
+
+
+def test_robomimic_compressed_or_huge_chunked_datasets_are_refused(exported):
+    """export_robomimic writes plain datasets; a filter could inflate without bound."""
+    import h5py
+
+    path = exported[0]
+    with h5py.File(path, "a") as f:
+        data = f["data/demo_0/actions"][()]
+        del f["data/demo_0/actions"]
+        f.create_dataset("data/demo_0/actions", data=data, compression="gzip")
+    assert "/data/demo_0/actions is compressed or filtered" in h5_error(path)
+    with h5py.File(path, "a") as f:
+        del f["data/demo_0/actions"]
+        f.create_dataset(
+            "data/demo_0/actions", data=data, maxshape=(None, 8), chunks=(1_000_000, 8)
+        )
+    assert "/data/demo_0/actions has chunks of 32000000 bytes" in h5_error(path)
