@@ -7,7 +7,10 @@ Every file is crafted here in ``tmp_path`` from a small synthetic demonstration 
 
 from __future__ import annotations
 
+import io
 import json
+import struct
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -290,3 +293,157 @@ def test_robomimic_compressed_or_huge_chunked_datasets_are_refused(exported):
             "data/demo_0/actions", data=data, maxshape=(None, 8), chunks=(1_000_000, 8)
         )
     assert "/data/demo_0/actions has chunks of 32000000 bytes" in h5_error(path)
+
+
+# -- .npz: the zip directory is bounded before zipfile parses it ----------------------------------
+
+_EOCD = struct.Struct("<4s4H2LH")
+_CENTRAL = struct.Struct("<4s4B4HL2L5H2L")
+_LOCAL = struct.Struct("<4s2B4HL2L2H")
+
+
+def split_zip(data: bytes) -> tuple[bytes, bytes, tuple]:
+    """(local headers and data, central directory, EOCD fields) of a zip without a comment."""
+    fields = _EOCD.unpack(data[-_EOCD.size :])
+    cd_size, cd_offset = fields[5], fields[6]
+    return data[:cd_offset], data[cd_offset : cd_offset + cd_size], fields
+
+
+def central_entry(name: bytes, offset: int = 0) -> bytes:
+    """A directory record of an empty stored member (a 46-byte header and the name)."""
+    return (
+        _CENTRAL.pack(
+            b"PK\x01\x02", 20, 3, 20, 0, 0, 0, 0, 0, 0, 0, 0, len(name), 0, 0, 0, 0, 0, offset
+        )
+        + name
+    )
+
+
+def build_zip(
+    body: bytes,
+    directory: bytes,
+    n_entries: int,
+    *,
+    zip64: bool = False,
+    cd_size: int | None = None,
+    cd_offset: int | None = None,
+) -> bytes:
+    """``body`` + ``directory`` + an end record declaring ``n_entries`` (and a ZIP64 end record
+    and locator with ``zip64``); ``cd_size``/``cd_offset`` override the true values (a lie)."""
+    size = len(directory) if cd_size is None else cd_size
+    offset = len(body) if cd_offset is None else cd_offset
+    out = body + directory
+    if zip64:
+        z64_at = len(out)
+        out += struct.pack(
+            "<4sQ2H2L4Q", b"PK\x06\x06", 44, 45, 45, 0, 0, n_entries, n_entries, size, offset
+        )
+        out += struct.pack("<4sLQL", b"PK\x06\x07", 0, z64_at, 1)
+        return out + _EOCD.pack(b"PK\x05\x06", 0, 0, 0xFFFF, 0xFFFF, 2**32 - 1, 2**32 - 1, 0)
+    return out + _EOCD.pack(b"PK\x05\x06", 0, 0, n_entries, n_entries, size, offset, 0)
+
+
+def npz_bytes(demos: DemonstrationSet, compressed: bool = True) -> bytes:
+    buf = io.BytesIO()
+    (np.savez_compressed if compressed else np.savez)(buf, **demos.to_arrays())
+    return buf.getvalue()
+
+
+def with_empty_entries(data: bytes, n_extra: int, *, declared: int | None = None) -> bytes:
+    """The file plus ``n_extra`` empty members; the end record declares ``declared`` entries
+    (default: the true count)."""
+    body, directory, fields = split_zip(data)
+    extra_body, extra_dir, offset = [body], [directory], len(body)
+    for i in range(n_extra):
+        name = b"e%d" % i
+        local = _LOCAL.pack(b"PK\x03\x04", 20, 0, 0, 0, 0, 0, 0, 0, 0, len(name), 0) + name
+        extra_body.append(local)
+        extra_dir.append(central_entry(name, offset))
+        offset += len(local)
+    count = fields[4] + n_extra if declared is None else declared
+    return build_zip(b"".join(extra_body), b"".join(extra_dir), count)
+
+
+def test_valid_files_of_numpy_and_zip64_records_still_load(demos, tmp_path):
+    from gym_coffee._io import NpzReader
+
+    for compressed in (True, False):
+        data = npz_bytes(demos, compressed)
+        assert DemonstrationSet.load(io.BytesIO(data)) == demos
+        body, directory, fields = split_zip(data)
+        z64 = build_zip(body, directory, fields[4], zip64=True)
+        with zipfile.ZipFile(io.BytesIO(z64)) as zf:  # zipfile reads the ZIP64 records too
+            assert len(zf.infolist()) == fields[4]
+        assert DemonstrationSet.load(io.BytesIO(z64)) == demos
+    path = tmp_path / "c.npz"
+    with zipfile.ZipFile(io.BytesIO(npz_bytes(demos))) as src, zipfile.ZipFile(path, "w") as dst:
+        for info in src.infolist():
+            dst.writestr(info, src.read(info))
+        dst.comment = b"a zip comment"
+    assert DemonstrationSet.load(path) == demos
+    with NpzReader(path, max_bytes=1 << 20, max_entries=fields[4]) as npz:
+        assert "actions" in npz.members
+
+
+def test_too_many_entries_are_refused_before_the_directory_is_parsed(demos, tmp_path):
+    from gym_coffee._io import DEFAULT_MAX_ENTRIES, FileFormatError, NpzReader
+
+    data = npz_bytes(demos)
+    n = split_zip(data)[2][4]
+    path = tmp_path / "many.npz"
+    path.write_bytes(with_empty_entries(data, 30))
+    with pytest.raises(FileFormatError, match=f"lists {n + 30} entries.*at most {n + 29}"):
+        with NpzReader(path, max_bytes=1 << 20, max_entries=n + 29):
+            pass
+    with NpzReader(path, max_bytes=1 << 20, max_entries=n + 30) as npz:
+        assert "actions" in npz.members
+    path.write_bytes(with_empty_entries(data, DEFAULT_MAX_ENTRIES + 1 - n))  # ~0.8 MB
+    msg = load_error(path)
+    assert msg.startswith(str(path))
+    assert f"lists {DEFAULT_MAX_ENTRIES + 1} entries; expected at most {DEFAULT_MAX_ENTRIES}" in msg
+
+
+@pytest.mark.parametrize("zip64", [False, True])
+def test_an_end_record_that_lies_about_the_entries_is_refused(demos, tmp_path, zip64):
+    import tracemalloc
+
+    data = npz_bytes(demos)
+    n = split_zip(data)[2][4]
+    # 50,000 empty entries (2.5 MB) behind an end record that declares the original count:
+    # zipfile would parse them all (it reads the directory by its size, not its count).
+    body, directory, _ = split_zip(data)
+    extra = b"".join(central_entry(b"") for _ in range(50_000))
+    path = tmp_path / "lie.npz"
+    path.write_bytes(build_zip(body, directory + extra, n, zip64=zip64))
+    tracemalloc.start()
+    try:
+        msg = load_error(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert "zip directory" in msg and f"{n} entries" in msg, msg
+    assert peak < 1_000_000
+    # A few uncounted entries fit the size bound: the directory is counted exactly.
+    path.write_bytes(build_zip(body, directory + extra[: 46 * 5], n, zip64=zip64))
+    msg = load_error(path)
+    assert f"holds {n + 1} or more entries but its end record declares {n}" in msg, msg
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ({"cd_offset": 7}, "does not end where the end record starts"),
+        ({"cd_size": 100}, "does not end where the end record starts"),
+        ({"n_entries": 0}, "holds"),
+    ],
+)
+def test_an_end_record_that_disagrees_with_the_file_is_refused(demos, tmp_path, change, expected):
+    data = npz_bytes(demos)
+    body, directory, fields = split_zip(data)
+    args = {"n_entries": fields[4], **change}
+    path = tmp_path / "bad.npz"
+    path.write_bytes(build_zip(body, directory, **args))
+    msg = load_error(path)
+    assert msg.startswith(str(path)) and expected in msg, msg
+    path.write_bytes(data[:-3])  # a cut end record
+    assert "end-of-directory record" in load_error(path)
