@@ -26,7 +26,6 @@ import os
 import struct
 import tempfile
 import zipfile
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -236,7 +235,7 @@ class NpzReader:
             fh.seek(0)
             try:
                 self._zip = zipfile.ZipFile(fh)
-            except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+            except Exception as exc:  # BadZipFile, OSError, ...: a damaged directory
                 raise FileFormatError(
                     f"{self.what} is not a readable .npz file (truncated or corrupt?): {exc}"
                 ) from exc
@@ -283,7 +282,7 @@ class NpzReader:
             )
         try:
             stream = self._zip.open(info)
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+        except Exception as exc:  # bad headers, encrypted (RuntimeError), unknown method, ...
             raise self._corrupt(name, exc) from exc
         try:
             version = npy_format.read_magic(stream)
@@ -294,7 +293,7 @@ class NpzReader:
             else:
                 raise ValueError(f"unknown .npy format version {version}")
             header_len = stream.tell()
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, SyntaxError) as exc:
+        except Exception as exc:  # also zlib/lzma/bz2 errors of a damaged member
             stream.close()
             raise self._corrupt(name, exc) from exc
         shape, fortran, dtype = hdr
@@ -308,6 +307,12 @@ class NpzReader:
             stream.close()
             raise FileFormatError(
                 f"{self.what}: array {name!r} has dtype {dtype}; expected numbers or text"
+            )
+        if dtype.itemsize == 0:  # numpy cannot even build such an array from bytes
+            stream.close()
+            raise FileFormatError(
+                f"{self.what}: array {name!r} has dtype {dtype} (zero bytes per element); "
+                "expected numbers or text of at least one character"
             )
         n_bytes = math.prod(shape) * dtype.itemsize
         if header_len + n_bytes != info.file_size:
@@ -337,7 +342,7 @@ class NpzReader:
         try:
             with stream:
                 data = stream.read(n_bytes)
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+        except Exception as exc:  # zlib/lzma/bz2 errors, a bad CRC, ...
             raise self._corrupt(name, exc) from exc
         if len(data) != n_bytes:
             raise self._corrupt(name, EOFError(f"{len(data)} of {n_bytes} bytes"))
@@ -346,9 +351,17 @@ class NpzReader:
         return arr.reshape(shape, order="F" if fortran else "C").copy()
 
     def _corrupt(self, name: str, exc: BaseException) -> FileFormatError:
-        return FileFormatError(
-            f"{self.what}: array {name!r} cannot be read (truncated or corrupt file?): {exc}"
-        )
+        info = self._infos[name]
+        if info.flag_bits & 0x1:
+            problem = "is encrypted; expected a plain (unencrypted) zip member"
+        elif isinstance(exc, NotImplementedError):
+            problem = (
+                f"uses zip compression method {info.compress_type}, which cannot be read; "
+                "expected stored or deflate (as numpy writes)"
+            )
+        else:
+            problem = f"cannot be read (truncated or corrupt file?): {type(exc).__name__}: {exc}"
+        return FileFormatError(f"{self.what}: array {name!r} {problem}")
 
 
 def _check_directory(fh: BinaryIO, size: int, what: str, max_entries: int) -> None:

@@ -698,10 +698,16 @@ def _read_members(npz: NpzReader) -> dict[str, NDArray[Any]]:
     arrays = {"metadata": npz.read("metadata")}
     meta = _parse_metadata(arrays["metadata"])
     _check_missing(meta, npz.members)
-    for name in ("lengths", "seeds", "success"):
+    for name, kinds, what in (
+        ("lengths", "iu", "integers"),
+        ("seeds", "iu", "integers"),
+        ("success", "b", "bool"),
+    ):
         shape, dtype = npz.header(name)
-        if len(shape) != 1:
-            raise DemonstrationFormatError(f"array {name!r} has shape {shape}; expected (n_demos,)")
+        if len(shape) != 1 or dtype.kind not in kinds:
+            raise DemonstrationFormatError(
+                f"array {name!r} has shape {shape} and dtype {dtype}; expected (n_demos,) {what}"
+            )
         arrays[name] = npz.read(name)
     lengths, _seeds, _success = _check_index_arrays(
         meta, arrays["lengths"], arrays["seeds"], arrays["success"]

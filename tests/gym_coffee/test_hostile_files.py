@@ -447,3 +447,78 @@ def test_an_end_record_that_disagrees_with_the_file_is_refused(demos, tmp_path, 
     assert msg.startswith(str(path)) and expected in msg, msg
     path.write_bytes(data[:-3])  # a cut end record
     assert "end-of-directory record" in load_error(path)
+
+
+# -- .npz: members that zipfile or numpy cannot read are bad files, named -------------------------
+
+
+def patch_directory(data: bytes, member: str, *, flags: int | None = None, method=None) -> bytes:
+    """Change the general-purpose flags or the compression method of ``member`` in the zip
+    directory (where zipfile reads them)."""
+    body, directory, fields = split_zip(data)
+    out, at = bytearray(directory), 0
+    while at < len(directory):
+        entry = list(_CENTRAL.unpack_from(directory, at))
+        size = _CENTRAL.size + entry[12] + entry[13] + entry[14]
+        name = directory[at + _CENTRAL.size : at + _CENTRAL.size + entry[12]].decode()
+        if name == member:
+            entry[5] = entry[5] if flags is None else flags
+            entry[6] = entry[6] if method is None else method
+            out[at : at + _CENTRAL.size] = _CENTRAL.pack(*entry)
+        at += size
+    return build_zip(body, bytes(out), fields[4])
+
+
+@pytest.mark.parametrize(
+    ("member", "change", "expected"),
+    [
+        ("metadata.npy", {"flags": 1}, "encrypted"),
+        ("lengths.npy", {"flags": 1}, "encrypted"),
+        ("actions.npy", {"method": 6}, "compression method"),  # implode
+        ("metadata.npy", {"method": 14}, "cannot be read"),  # LZMA over deflate data
+        ("time.npy", {"method": 12}, "cannot be read"),  # bzip2 over deflate data
+    ],
+)
+def test_members_zipfile_cannot_read_name_the_file_and_member(
+    demos, tmp_path, member, change, expected
+):
+    path = tmp_path / "bad.npz"
+    path.write_bytes(patch_directory(npz_bytes(demos), member, **change))
+    msg = load_error(path)
+    name = member.removesuffix(".npy")
+    assert msg.startswith(str(path)) and f"array {name!r}" in msg, msg
+    assert expected in msg, msg
+    out = tmp_path / "x.hdf5"  # the command line: a bad input file (2), not a failure (1)
+    assert cli(["export", str(path), "--format", "robomimic", "--out", str(out)]) == 2
+
+
+def raw_npy(shape: tuple[int, ...], descr: str) -> bytes:
+    """A .npy header alone (no data)."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf, {"descr": descr, "fortran_order": False, "shape": shape}
+    )
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("member", "shape", "descr"),
+    [
+        ("lengths", (10**12,), "<U0"),
+        ("lengths", (3,), "<U0"),
+        ("metadata", (), "<U0"),
+        ("seeds", (10**12,), "|S0"),
+        ("actions", (10**12, 8), "<U0"),
+    ],
+)
+def test_zero_size_dtypes_are_refused_naming_the_member(demos, tmp_path, member, shape, descr):
+    path = tmp_path / "u0.npz"
+    arrays = demos.to_arrays()
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, value in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, value)
+            zf.writestr(f"{name}.npy", raw_npy(shape, descr) if name == member else buf.getvalue())
+    msg = load_error(path)
+    assert msg.startswith(str(path)) and f"{member!r}" in msg and "expected" in msg, msg
+    assert "itemsize cannot be zero" not in msg
