@@ -97,10 +97,18 @@ def parse_json(text: str, *, where: str) -> Any:
         ) from None
 
 
-def refuse_existing(path: Path, overwrite: bool, hint: str = "pass overwrite=True") -> None:
-    """Raise ``FileExistsError`` if ``path`` exists and ``overwrite`` is false."""
-    if not overwrite and (path.exists() or path.is_symlink()):
-        raise FileExistsError(f"{path} exists; {hint} (CLI: --force) to replace it")
+def _exists(path: Path) -> FileExistsError:
+    return FileExistsError(f"{path} exists; pass --force (overwrite=True) to overwrite it")
+
+
+def refuse_existing(path: Path, overwrite: bool) -> None:
+    """Raise ``FileExistsError`` if anything is at ``path`` and ``overwrite`` is false.
+
+    A symlink counts, even a dangling one (``os.path.lexists``; ``Path.exists`` follows the
+    link and says no): writing would replace the link.
+    """
+    if not overwrite and os.path.lexists(path):
+        raise _exists(path)
 
 
 def _umask() -> int:
@@ -120,7 +128,8 @@ def atomic_output(
     ~umask``) and moved onto ``path``: with ``overwrite`` by ``os.replace``, otherwise by a hard
     link, which fails if ``path`` appeared in the meantime (no silent clobbering in a race).
     On an exception, or a full disk, the temporary file is removed and an existing ``path`` is
-    untouched.
+    untouched. A symlink at ``path`` (dangling or not) is an existing file: it is refused
+    without ``overwrite`` and replaced itself with it, never written through to its target.
 
     Args:
         path: the file to produce. A missing folder is created (as ``mkdir -p``).
@@ -144,14 +153,12 @@ def atomic_output(
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600
         if overwrite:
-            os.replace(tmp, path)
+            os.replace(tmp, path)  # replaces a symlink at path, not its target
         else:
             try:
-                os.link(tmp, path)
+                os.link(tmp, path)  # never follows a symlink at path: fails if one is there
             except FileExistsError:
-                raise FileExistsError(
-                    f"{path} exists; pass overwrite=True (CLI: --force) to replace it"
-                ) from None
+                raise _exists(path) from None
             except OSError:  # a file system without hard links
                 refuse_existing(path, overwrite)
                 os.replace(tmp, path)

@@ -660,7 +660,7 @@ def export_minari(
         raise ValueError(f"dataset_id: {exc}") from None
     root = Path(get_dataset_path() if root is None else root)
     final = root / dataset_id
-    refuse_existing(final, overwrite, hint="pass overwrite=True")
+    refuse_existing(final, overwrite)
     env_spec, obs_space, act_space = _minari_spaces(demos)
     buffers = []
     for i, d in enumerate(demos):
@@ -703,7 +703,7 @@ def export_minari(
                 if namespace not in list_local_namespaces():
                     create_namespace(namespace)
         final.parent.mkdir(parents=True, exist_ok=True)
-        if final.exists():
+        if os.path.lexists(final):  # a symlink, even a dangling one, is moved away itself
             refuse_existing(final, overwrite)
             os.replace(final, tmp_root / ".replaced")
         os.replace(tmp_root / dataset_id, final)

@@ -522,3 +522,77 @@ def test_zero_size_dtypes_are_refused_naming_the_member(demos, tmp_path, member,
     msg = load_error(path)
     assert msg.startswith(str(path)) and f"{member!r}" in msg and "expected" in msg, msg
     assert "itemsize cannot be zero" not in msg
+
+
+# -- outputs: a symlink (dangling or not) is an existing file; it is replaced, never written through
+
+
+def writers(demos: DemonstrationSet):
+    """(name, suffix, write(path, overwrite)) of each gym_coffee writer."""
+    from gym_coffee.datasets import export_robomimic
+    from gym_coffee.video import write_video
+
+    frames = [np.zeros((4, 4, 3), np.uint8)] * 2
+    return [
+        ("save", ".npz", lambda p, o: demos.save(p, overwrite=o)),
+        ("robomimic", ".hdf5", lambda p, o: export_robomimic(demos, p, overwrite=o)),
+        ("video", ".gif", lambda p, o: write_video(p, frames, overwrite=o)),
+    ]
+
+
+@pytest.mark.parametrize("which", ["save", "robomimic", "video"])
+@pytest.mark.parametrize("dangling", [True, False])
+def test_symlinked_outputs_are_refused_or_replaced_never_written_through(
+    demos, tmp_path, which, dangling
+):
+    import os
+
+    _, suffix, write = next(w for w in writers(demos) if w[0] == which)
+    target = tmp_path / "elsewhere" / f"target{suffix}"
+    target.parent.mkdir()
+    if not dangling:
+        target.write_bytes(b"precious")
+    link = tmp_path / f"out{suffix}"
+    link.symlink_to(target)
+    with pytest.raises(FileExistsError) as info:
+        write(link, False)
+    assert str(info.value) == f"{link} exists; pass --force (overwrite=True) to overwrite it"
+    assert os.readlink(link) == str(target)  # untouched
+    write(link, True)  # the link itself is replaced, atomically
+    assert link.is_file() and not link.is_symlink()
+    if dangling:
+        assert not target.exists()
+    else:
+        assert target.read_bytes() == b"precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["elsewhere", link.name]
+
+
+def test_atomic_output_sees_dangling_links(tmp_path):
+    from gym_coffee._io import atomic_output, refuse_existing
+
+    link = tmp_path / "x.bin"
+    link.symlink_to(tmp_path / "missing" / "x.bin")
+    with pytest.raises(FileExistsError, match="pass --force"):
+        refuse_existing(link, False)
+    with pytest.raises(FileExistsError, match="pass --force"):
+        with atomic_output(link) as tmp:
+            tmp.write_bytes(b"new")
+    assert link.is_symlink()
+    with atomic_output(link, overwrite=True) as tmp:
+        tmp.write_bytes(b"new")
+    assert link.read_bytes() == b"new" and not link.is_symlink()
+    assert not (tmp_path / "missing").exists()
+
+
+def test_minari_export_over_a_dangling_link(demos, tmp_path):
+    from gym_coffee.datasets import export_minari
+
+    final = tmp_path / "coffee" / "d-v0"
+    final.parent.mkdir()
+    final.symlink_to(tmp_path / "nowhere")
+    with pytest.raises(FileExistsError, match=r"pass --force \(overwrite=True\)"):
+        export_minari(demos, "coffee/d-v0", root=tmp_path)
+    assert final.is_symlink()
+    export_minari(demos, "coffee/d-v0", root=tmp_path, overwrite=True)
+    assert final.is_dir() and not final.is_symlink()
+    assert not (tmp_path / "nowhere").exists()
