@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import json
+import math
 import os
 import re
 import shutil
@@ -42,10 +43,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gym_coffee._io import FileFormatError, atomic_output, refuse_existing
+from gym_coffee._io import FileFormatError, atomic_output, parse_json, refuse_existing
 from gym_coffee.demonstrations import (
     ACTION_DIMS,
     DEFAULT_MAX_BYTES,
+    MAX_METADATA_CHARS,
     N_JOINTS,
     STAGE_NAMES,
     Demonstration,
@@ -68,6 +70,16 @@ EXTRA = "datasets"
 """The optional dependency group that provides h5py and minari."""
 _DEMO_NAME = re.compile(r"demo_(\d+)")
 _MAX_DEMOS = 1_000_000
+_MAX_KEY_CHARS = 64
+"""Longest observation key name (``obs/<key>``)."""
+_MAX_KEYS_BYTES = 1 << 16
+"""Longest ``gym_coffee_obs_keys`` JSON text read (bytes)."""
+_MAX_ATTRS_BYTES = 4 * MAX_METADATA_CHARS
+"""Most bytes all attributes of one group may take in the file (``data``: the metadata JSON,
+at most ``MAX_METADATA_CHARS``, ``env_args``, the observation keys); checked before any of them is
+touched, since HDF5 decodes a whole attribute even to find it by name."""
+_MAX_CHUNK_BYTES = 16 << 20
+"""Largest chunk of a chunked dataset (bytes) when the dataset itself is smaller."""
 
 
 def _require(module: str, what: str) -> ModuleType:
@@ -104,13 +116,19 @@ def obs_keys(demos: DemonstrationSet) -> list[tuple[str, int, int]]:
     return sorted(((str(k), int(v[0]), int(v[1])) for k, v in slices.items()), key=lambda p: p[1])
 
 
+def _plain_name(name: Any) -> bool:
+    """Whether ``name`` can be an observation key: an identifier of at most
+    :data:`_MAX_KEY_CHARS` characters (it becomes an HDF5 path component, ``obs/<key>``)."""
+    return isinstance(name, str) and name.isidentifier() and len(name) <= _MAX_KEY_CHARS
+
+
 def _covers(slices: Any, obs_dim: int) -> bool:
     """Whether ``slices`` (name -> [start, stop]) tile ``range(obs_dim)`` with valid names."""
     if not isinstance(slices, Mapping) or not slices:
         return False
     parts = []
     for name, value in slices.items():
-        if not (isinstance(name, str) and name.isidentifier() and name != "flat"):
+        if not (_plain_name(name) and name != "flat"):
             return False
         if not (
             isinstance(value, (list, tuple))
@@ -277,9 +295,11 @@ def import_robomimic(
 
     The arrays come back exactly (same values and dtypes). The file is checked like a
     demonstration file (:meth:`DemonstrationSet.load`): only the datasets of the layout are read,
-    each one's shape and dtype are checked before its data are read, links to other files,
-    external storage and virtual datasets are refused, at most ``max_bytes`` are read, and every
-    value is validated before anything is built.
+    each one's shape and dtype are checked before its data are read, soft and external links (at
+    any component of a path), external storage, virtual and compressed (filtered) datasets are
+    refused, the size of every attribute is checked before it is read (the metadata JSON: at
+    most ``MAX_METADATA_CHARS`` bytes), at most ``max_bytes`` are read, and every value is
+    validated before anything is built.
 
     Raises:
         ImportError: h5py is not installed (the ``datasets`` extra).
@@ -321,14 +341,33 @@ class _H5Reader:
         self.budget = int(max_bytes)
 
     def node(self, group: Any, name: str) -> Any:
-        link = group.get(name, getlink=True)
-        if link is None:
-            raise DemonstrationFormatError(f"missing {group.name}/{name}")
-        if not isinstance(link, self.h5py.HardLink):
-            raise DemonstrationFormatError(
-                f"{group.name}/{name} is a {type(link).__name__}; links are not followed"
-            )
-        return group[name]
+        """The object at the relative path ``name`` under ``group``, one component at a time:
+        every component must be a hard link (an object of this file), never a soft link (a
+        path, which may lead anywhere in the file) or an external link (another file)."""
+        parts = name.split("/")
+        if not all(part and part != "." for part in parts):
+            raise DemonstrationFormatError(f"{group.name}: {name!r} is not a relative path")
+        node, where = group, group.name.rstrip("/")
+        for i, part in enumerate(parts):
+            where = f"{where}/{part}"
+            if i and not isinstance(node, self.h5py.Group):
+                raise DemonstrationFormatError(f"{node.name} is not a group")
+            try:
+                link = node.get(part, getlink=True)
+            except TypeError:  # h5py: a user-defined link type
+                raise DemonstrationFormatError(
+                    f"{where} is a link of an unknown type; links are not followed"
+                ) from None
+            if link is None:
+                raise DemonstrationFormatError(f"missing {where}")
+            if not isinstance(link, self.h5py.HardLink):
+                kind = type(link).__name__
+                raise DemonstrationFormatError(
+                    f"{where} is {'an' if kind[0] in 'AEIOU' else 'a'} {kind}; links to other "
+                    "files or paths are not followed"
+                )
+            node = node[part]
+        return node
 
     def group(self, group: Any, name: str) -> Any:
         node = self.node(group, name)
@@ -345,6 +384,12 @@ class _H5Reader:
             raise DemonstrationFormatError(f"{ds.name} is not a dataset")
         if ds.is_virtual or ds.external:
             raise DemonstrationFormatError(f"{ds.name} keeps its data in other files; refused")
+        if ds.id.get_create_plist().get_nfilters():
+            raise DemonstrationFormatError(
+                f"{ds.name} is compressed or filtered ({ds.compression or 'a filter'}); "
+                "expected a plain dataset as export_robomimic writes (a filter could inflate "
+                "without bound)"
+            )
         if ds.dtype.kind not in kinds or ds.dtype.names is not None or ds.dtype.subdtype:
             raise DemonstrationFormatError(f"{ds.name} has dtype {ds.dtype}; expected numbers")
         got = tuple(ds.shape)
@@ -353,58 +398,108 @@ class _H5Reader:
         ):
             want = tuple("*" if w is None else w for w in shape)
             raise DemonstrationFormatError(f"{ds.name} has shape {got}; expected {want}")
-        n_bytes = int(np.prod(got, dtype=np.int64)) * ds.dtype.itemsize
+        n_bytes = math.prod(got) * ds.dtype.itemsize
         if n_bytes > self.budget:
             raise DemonstrationFormatError(
                 f"{ds.name} ({n_bytes} bytes) would exceed the limit of bytes read"
             )
+        if ds.chunks is not None:
+            chunk_bytes = math.prod(ds.chunks) * ds.dtype.itemsize
+            if chunk_bytes > max(n_bytes, _MAX_CHUNK_BYTES):
+                raise DemonstrationFormatError(
+                    f"{ds.name} has chunks of {chunk_bytes} bytes; expected at most "
+                    f"{max(n_bytes, _MAX_CHUNK_BYTES)} (16 MiB, or the dataset's own size)"
+                )
         self.budget -= n_bytes
         return np.asarray(ds[()])
 
-    def text_attr(self, node: Any, name: str) -> str:
-        """A fixed-length byte-string attribute, its size checked before it is read."""
+    def _attr(self, node: Any, name: str, kinds: str, max_bytes: int, expected: str) -> Any:
+        """The attribute's value, after checking its type, shape and size (from its header,
+        with h5py's low-level API) against ``kinds`` and ``max_bytes``; ``None`` if missing."""
+        self.check_attrs_size(node)
         if name not in node.attrs:
-            raise DemonstrationFormatError(f"missing text attribute {node.name}.attrs[{name!r}]")
+            return None
         attr = node.attrs.get_id(name)
-        if attr.dtype.kind != "S" or attr.shape not in ((), (1,)):
+        where = f"{node.name}.attrs[{name!r}]"
+        dtype, shape = attr.dtype, attr.shape
+        if dtype.kind not in kinds or dtype.names is not None or shape not in ((), (1,)):
             raise DemonstrationFormatError(
-                f"{node.name}.attrs[{name!r}] has type {attr.dtype} {attr.shape}; expected one "
-                "fixed-length byte string"
+                f"{where} has type {dtype} and shape {shape}; expected {expected}"
             )
-        if attr.dtype.itemsize > self.budget:
-            raise DemonstrationFormatError(f"{node.name}.attrs[{name!r}] is too long")
-        self.budget -= attr.dtype.itemsize
-        value = np.asarray(node.attrs[name]).reshape(-1)[0]
+        n_bytes = max(dtype.itemsize, attr.get_storage_size())
+        if n_bytes > min(max_bytes, self.budget):
+            raise DemonstrationFormatError(
+                f"{where} has {n_bytes} bytes; expected at most {min(max_bytes, self.budget)} "
+                f"({expected})"
+            )
+        self.budget -= n_bytes
+        return np.asarray(node.attrs[name]).reshape(-1)[0]
+
+    def check_attrs_size(self, node: Any) -> None:
+        """Refuse a node whose attributes take more than :data:`_MAX_ATTRS_BYTES` in the file,
+        from the object's header information (no attribute is decoded)."""
+        info = self.h5py.h5o.get_info(node.id)
+        attrs = info.meta_size.attr
+        n_bytes = int(info.hdr.space.total) + int(attrs.heap_size) + int(attrs.index_size)
+        if n_bytes > _MAX_ATTRS_BYTES:
+            raise DemonstrationFormatError(
+                f"{node.name}.attrs take {n_bytes} bytes in the file; expected at most "
+                f"{_MAX_ATTRS_BYTES} (e.g. 'gym_coffee_metadata' holds at most "
+                f"{MAX_METADATA_CHARS} bytes of JSON); no attribute was read"
+            )
+
+    def text_attr(self, node: Any, name: str, max_bytes: int) -> str:
+        """A fixed-length byte-string attribute of at most ``max_bytes``, its size checked
+        before it is read."""
+        value = self._attr(node, name, "S", max_bytes, "one fixed-length byte string")
+        if value is None:
+            raise DemonstrationFormatError(f"missing text attribute {node.name}.attrs[{name!r}]")
         return bytes(value).decode("utf-8", errors="replace")
+
+    def int_attr(self, node: Any, name: str) -> int:
+        """A scalar integer attribute."""
+        value = self._attr(node, name, "iu", 8, "one integer")
+        if value is None:
+            raise DemonstrationFormatError(f"missing {node.name}.attrs[{name!r}]; expected int")
+        return int(value)
+
+    def bool_attr(self, node: Any, name: str, default: bool) -> bool:
+        """A scalar boolean attribute (or 0/1); ``default`` if missing."""
+        value = self._attr(node, name, "biu", 8, "one boolean")
+        if value is None:
+            return default
+        if value not in (0, 1):
+            raise DemonstrationFormatError(
+                f"{node.name}.attrs[{name!r}] is {value!r}; expected one boolean"
+            )
+        return bool(value)
 
 
 def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
     data = r.group(f, "data")
-    try:
-        meta_text = r.text_attr(data, "gym_coffee_metadata")
-    except DemonstrationFormatError:
+    r.check_attrs_size(data)  # before any name lookup, which decodes a whole attribute
+    if "gym_coffee_metadata" not in data.attrs:
         raise DemonstrationFormatError(
             "has no data.attrs['gym_coffee_metadata']: not written by "
             "gym_coffee.datasets.export_robomimic (only its files can be imported)"
-        ) from None
+        )
+    # The metadata of a demonstration file: at most MAX_METADATA_CHARS (ASCII JSON) bytes.
+    meta_text = r.text_attr(data, "gym_coffee_metadata", MAX_METADATA_CHARS)
     arrays: dict[str, NDArray[Any]] = {"metadata": np.array(meta_text)}
     # The header checks of a demonstration file (format, version, objects, action type).
     from gym_coffee.demonstrations import _parse_metadata
 
-    meta = _parse_metadata(arrays["metadata"])
-    try:
-        keys = json.loads(r.text_attr(data, "gym_coffee_obs_keys"))
-    except json.JSONDecodeError as exc:
-        raise DemonstrationFormatError(f"data.attrs['gym_coffee_obs_keys']: {exc}") from None
+    meta = _parse_metadata(arrays["metadata"], where="data.attrs['gym_coffee_metadata']")
     obs_dim = meta.get("obs_dim")
-    if not _covers({k[0]: [k[1], k[2]] for k in keys if _is_key(k)}, obs_dim or 0) and not (
-        keys == [["flat", 0, obs_dim]]
-    ):
+    if obs_dim is None:
         raise DemonstrationFormatError(
-            f"data.attrs['gym_coffee_obs_keys'] do not tile the observation: {keys!r:.200}"
+            "data.attrs['gym_coffee_metadata'] has no 'obs_dim'; expected the observation size"
         )
+    keys = _parse_obs_keys(r.text_attr(data, "gym_coffee_obs_keys", _MAX_KEYS_BYTES), obs_dim)
+    if len(data) > _MAX_DEMOS:  # counted before the names are listed
+        raise DemonstrationFormatError(f"data holds {len(data)} groups; expected <= {_MAX_DEMOS}")
     names = list(data.keys())
-    if len(names) > _MAX_DEMOS or not all(_DEMO_NAME.fullmatch(n) for n in names):
+    if not all(_DEMO_NAME.fullmatch(n) for n in names):
         raise DemonstrationFormatError("data holds groups other than demo_<i>")
     names.sort(key=lambda n: int(n[5:]))
     if names != [f"demo_{i}" for i in range(len(names))] or not names:
@@ -414,12 +509,12 @@ def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
     lengths, seeds, success = [], [], []
     for name in names:
         group = r.group(data, name)
-        n = _int_attr(group, "num_samples")
+        n = r.int_attr(group, "num_samples")
         if n < 1:
             raise DemonstrationFormatError(f"{group.name}.attrs['num_samples'] is {n}; need >= 1")
         lengths.append(n + 1)
-        seeds.append(_int_attr(group, "seed"))
-        success.append(bool(group.attrs.get("success", False)))
+        seeds.append(r.int_attr(group, "seed"))
+        success.append(r.bool_attr(group, "success", default=False))
         obs = [r.read(group, f"obs/{k}", (n, stop - start)) for k, start, stop in keys]
         last = [r.read(group, f"next_obs/{k}", (n, stop - start))[-1:] for k, start, stop in keys]
         observations = np.concatenate([np.hstack(obs), np.hstack(last)])
@@ -452,15 +547,45 @@ _EXTRA_SHAPES: dict[str, tuple[int, ...]] = {
 }
 
 
-def _is_key(k: Any) -> bool:
-    return isinstance(k, list) and len(k) == 3 and isinstance(k[0], str)
-
-
-def _int_attr(node: Any, name: str) -> int:
-    value = node.attrs.get(name)
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise DemonstrationFormatError(f"{node.name}.attrs[{name!r}] is {value!r}; expected int")
-    return int(value)
+def _parse_obs_keys(text: str, obs_dim: int) -> list[tuple[str, int, int]]:
+    """The ``gym_coffee_obs_keys`` attribute: a JSON list of ``[name, start, stop]`` that tile
+    the observation (or the one key ``["flat", 0, obs_dim]``); names are plain, short names."""
+    where = "data.attrs['gym_coffee_obs_keys']"
+    expected = (
+        f"expected a JSON list of [name, start, stop] entries (names: identifiers of at most "
+        f"{_MAX_KEY_CHARS} characters) that tile the observation's {obs_dim} values"
+    )
+    try:
+        keys = parse_json(text, where=where)
+    except FileFormatError as exc:
+        raise DemonstrationFormatError(f"{exc}; {expected}") from None
+    if not isinstance(keys, list) or not keys or len(keys) > obs_dim:
+        raise DemonstrationFormatError(f"{where} is {text[:100]!r}; {expected}")
+    out = []
+    for key in keys:
+        if not (
+            isinstance(key, list)
+            and len(key) == 3
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in key[1:])
+        ):
+            what = f"a list of {len(key)} items" if isinstance(key, list) else type(key).__name__
+            raise DemonstrationFormatError(
+                f"{where} has an entry ({what}) that is not [name, start, stop] with integer "
+                f"start and stop; {expected}"
+            )
+        if not _plain_name(key[0]):
+            raise DemonstrationFormatError(
+                f"{where} has a key name {str(key[0])[:100]!r} that is not a plain name; {expected}"
+            )
+        out.append((key[0], key[1], key[2]))
+    if out != [("flat", 0, obs_dim)] and (
+        len({name for name, _, _ in out}) != len(out)
+        or not _covers({name: [start, stop] for name, start, stop in out}, obs_dim)
+    ):
+        raise DemonstrationFormatError(
+            f"{where} do not tile the observation: {text[:200]}; {expected} (each once)"
+        )
+    return sorted(out, key=lambda k: k[1])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -535,7 +660,7 @@ def export_minari(
         raise ValueError(f"dataset_id: {exc}") from None
     root = Path(get_dataset_path() if root is None else root)
     final = root / dataset_id
-    refuse_existing(final, overwrite, hint="pass overwrite=True")
+    refuse_existing(final, overwrite)
     env_spec, obs_space, act_space = _minari_spaces(demos)
     buffers = []
     for i, d in enumerate(demos):
@@ -578,7 +703,7 @@ def export_minari(
                 if namespace not in list_local_namespaces():
                     create_namespace(namespace)
         final.parent.mkdir(parents=True, exist_ok=True)
-        if final.exists():
+        if os.path.lexists(final):  # a symlink, even a dangling one, is moved away itself
             refuse_existing(final, overwrite)
             os.replace(final, tmp_root / ".replaced")
         os.replace(tmp_root / dataset_id, final)

@@ -37,7 +37,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gym_coffee import STAGES
-from gym_coffee._io import FileFormatError, NpzReader, atomic_output, refuse_existing
+from gym_coffee._io import (
+    FileFormatError,
+    NpzReader,
+    atomic_output,
+    parse_json,
+    refuse_existing,
+)
 
 __all__ = [
     "ACTION_DIM",
@@ -692,10 +698,16 @@ def _read_members(npz: NpzReader) -> dict[str, NDArray[Any]]:
     arrays = {"metadata": npz.read("metadata")}
     meta = _parse_metadata(arrays["metadata"])
     _check_missing(meta, npz.members)
-    for name in ("lengths", "seeds", "success"):
+    for name, kinds, what in (
+        ("lengths", "iu", "integers"),
+        ("seeds", "iu", "integers"),
+        ("success", "b", "bool"),
+    ):
         shape, dtype = npz.header(name)
-        if len(shape) != 1:
-            raise DemonstrationFormatError(f"array {name!r} has shape {shape}; expected (n_demos,)")
+        if len(shape) != 1 or dtype.kind not in kinds:
+            raise DemonstrationFormatError(
+                f"array {name!r} has shape {shape} and dtype {dtype}; expected (n_demos,) {what}"
+            )
         arrays[name] = npz.read(name)
     lengths, _seeds, _success = _check_index_arrays(
         meta, arrays["lengths"], arrays["seeds"], arrays["success"]
@@ -720,23 +732,24 @@ def _where(row: int, lengths: NDArray[np.int64] | None) -> str:
     return f"; row {row} is demonstration {demo}, step {step}"
 
 
-def _parse_metadata(raw: NDArray[Any] | None) -> dict[str, Any]:
-    """Parse and check the metadata JSON; fills ``action_type`` for schema version 1."""
+def _parse_metadata(raw: NDArray[Any] | None, where: str = "array 'metadata'") -> dict[str, Any]:
+    """Parse and check the metadata JSON (strictly: no NaN/Infinity, no overflowing numbers);
+    fills ``action_type`` for schema version 1. ``where`` names the JSON text in messages."""
     if raw is None:
         raise DemonstrationFormatError(
             "missing array 'metadata' (the JSON header); not a gym_coffee demonstration file"
         )
     if raw.dtype.kind != "U" or raw.size != 1:
         raise DemonstrationFormatError(
-            f"array 'metadata' has dtype {raw.dtype} and shape {raw.shape}; expected one "
+            f"{where} has dtype {raw.dtype} and shape {raw.shape}; expected one "
             "unicode string holding JSON"
         )
     try:
-        meta = json.loads(str(raw.reshape(())))
-    except (json.JSONDecodeError, RecursionError) as exc:
-        raise DemonstrationFormatError(f"array 'metadata' is not valid JSON: {exc}") from None
+        meta = parse_json(str(raw.reshape(())), where=f"{where} is not valid JSON")
+    except FileFormatError as exc:
+        raise DemonstrationFormatError(str(exc)) from None
     if not isinstance(meta, dict):
-        raise DemonstrationFormatError("array 'metadata' must hold a JSON object")
+        raise DemonstrationFormatError(f"{where} must hold a JSON object")
     if meta.get("format") != FORMAT_NAME:
         raise DemonstrationFormatError(
             f"metadata 'format' is {meta.get('format')!r}; expected {FORMAT_NAME!r} "

@@ -141,7 +141,9 @@ def test_robomimic_import_refuses_what_it_cannot_trust(demos, tmp_path):
         del f["data/demo_1/actions"]
         f["data/demo_1/actions"] = h5py.ExternalLink("/etc/passwd", "/x")
 
-    assert "ExternalLink; links are not followed" in edited("ext.hdf5", external)
+    assert "actions is an ExternalLink; links to other files or paths are not followed" in edited(
+        "ext.hdf5", external
+    )
 
     def reshape(f):
         del f["data/demo_0/gym_coffee/time"]
