@@ -16,7 +16,8 @@ whole fit near-linear in ``n``. Points are visited in the lexicographic order of
 the replicates of all demonstrations at one time step into the same model and makes the models
 contiguous time windows; for sorted 1-D inputs and a squared-exponential kernel the assignment runs
 in O(n) (same result as the general loop, tested). ``order="given"`` runs Algorithm 1 in the
-data's order as in the paper (replicates count once per consecutive run there).
+data's order as in the paper (replicates count once per consecutive run there). All of this runs on
+``X / input_scale_`` (see "Input units" below).
 
 Hyperparameters. ``hyperparameters="shared"`` (default): one set of kernel (and z-process)
 hyperparameters for all local models, learnt by maximising the *sum* of the local models' log
@@ -50,6 +51,21 @@ that behaviour for comparison). Rules:
 The noise is ``r(x) = sum_l rho_l(x) r_l(x)``: the noise function of the model whose training
 inputs surround ``x``, blended with its neighbour over about one input spacing between two windows
 (``LocalGP._noise_weights``).
+
+Input units (``input_scale``). Everything above runs on ``X / input_scale_`` (one divisor per
+feature): the kernel's starting values and bounds, and with them Algorithm 1's radius, are read in
+those units. The default kernel's starting length scale 1 assumes inputs on a unit scale; time in
+milliseconds made every time step its own local model. ``input_scale="auto"`` (default) rescales
+by powers of 1000 (an SI prefix), chosen per feature so that the feature's span
+``max(x) - min(x)`` lies in ``UNIT_SPAN = [1000**-0.5, 1000**0.5)`` (about ``[0.032, 31.6)``);
+a feature already in that band is used as given (divisor exactly 1: the same bits as without the
+rule), as is a constant feature. Inputs in ms, us or ns therefore give the model of the same
+inputs in seconds (same local models, same predictions to rounding); rescaling by other factors
+within the band (seconds against minutes) still changes the starting point. ``"auto"`` rescales
+only with the default kernels (``kernel`` and ``noise_kernel`` ``None``): an explicit kernel's
+length scales and bounds are in the input's own units and are used as given (divisor 1). A number
+or a per-feature array sets the divisor (``1.0``: the input as given). ``centers_`` and
+``X_train_`` are in input units; the local ``models_`` are fitted on ``X / input_scale_``.
 """
 
 from __future__ import annotations
@@ -86,7 +102,7 @@ from lgp_policy.gp.heteroscedastic import (
 )
 from lgp_policy.gp.kernels import Kernel, SquaredExponential
 
-__all__ = ["COMBINE_RULES", "DEFAULT_COMBINE", "LocalGP"]
+__all__ = ["COMBINE_RULES", "DEFAULT_COMBINE", "UNIT_SPAN", "LocalGP", "auto_input_scale"]
 
 COMBINE_RULES = ("product", "rbcm", "nearest")
 
@@ -102,6 +118,26 @@ models."""
 #: Test points farther than this many length scales from a model's data skip that model.
 SKIP_DISTANCE = 9.0
 
+#: ``input_scale="auto"`` rescales a feature by powers of this base (an SI prefix step).
+INPUT_SCALE_BASE = 1000.0
+
+#: Spans ``max(x) - min(x)`` that ``input_scale="auto"`` uses as given: one factor
+#: ``INPUT_SCALE_BASE`` wide, centred (geometrically) on 1; it holds the unit-scale inputs of
+#: the package (phase in [0, 1], time in [0, 10] s).
+UNIT_SPAN = (INPUT_SCALE_BASE**-0.5, INPUT_SCALE_BASE**0.5)
+
+
+def auto_input_scale(X: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per-feature divisors of ``input_scale="auto"``: ``INPUT_SCALE_BASE**k`` with the integer
+    ``k`` that puts the span ``ptp(X[:, j]) / divisor`` into ``UNIT_SPAN`` (exactly 1 for a span
+    already there and for a constant feature). Rescaling ``X`` by a power of the base rescales
+    the divisors by it, so that ``X / divisor`` stays the same (to rounding)."""
+    span = np.ptp(np.asarray(X, dtype=np.float64), axis=0)
+    k = np.zeros(span.shape)
+    positive = span > 0.0
+    k[positive] = np.floor(np.log10(span[positive]) / math.log10(INPUT_SCALE_BASE) + 0.5)
+    return np.power(INPUT_SCALE_BASE, k)
+
 
 class LocalGP(NoisePredictionsMixin, ParamsMixin):
     """Local (heteroscedastic) GP regression, Algorithms 1 and 2 of the paper.
@@ -109,7 +145,8 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
     Args:
         kernel: kernel of every local model (Eq. 10). Default
             ``SquaredExponential(1, 1) + WhiteNoise(0.1)``. Its signal part, with the initial
-            hyperparameters, also defines the assignment weight ``w``.
+            hyperparameters, also defines the assignment weight ``w``. Its length scales are in
+            units of ``X / input_scale_`` (the input's own units unless ``input_scale`` is set).
         threshold: minimum weight ``w`` in ``(0, 1)`` for joining an existing model.
         max_points: most distinct training inputs per local model (replicates are free).
         local_model: ``"heteroscedastic"`` (:class:`HeteroscedasticGP`) or ``"exact"``
@@ -131,23 +168,35 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             (:data:`~lgp_policy.gp.heteroscedastic.NOISE_BOUNDS`).
         optimizer, n_restarts, max_em_iter: passed to the local models.
         normalize_y: standardise ``y`` globally before fitting.
+        input_scale: ``"auto"``, a positive number or ``(n_features,)`` positive numbers: the
+            models run on ``X / input_scale_``, and the kernels' length scales (starting values
+            and bounds) are read in those units (module docstring, "Input units"). ``"auto"``:
+            powers of 1000 that bring each feature's span into :data:`UNIT_SPAN`
+            (:func:`auto_input_scale`) with the default kernels, 1 with an explicit ``kernel``
+            or ``noise_kernel``.
         random_state: seed for the local models.
 
     Attributes:
+        input_scale_: ``(n_features,)`` the divisors of the inputs (1: used as given).
         centers_: ``(n_models, n_features)`` centres in input units.
         assignments_: ``(n_samples,)`` index of the model each training point belongs to.
         models_: the fitted local models (:class:`GaussianProcess` or
-            :class:`HeteroscedasticGP`), fitted to globally standardised targets.
+            :class:`HeteroscedasticGP`), fitted to ``X / input_scale_`` and globally
+            standardised targets.
         estimators_: ``None``, or for heteroscedastic local models and a 2-D ``y`` one
             independent ``LocalGP`` per target (same ``centers_`` and ``assignments_``);
             ``models_`` is then a list (per target) of lists.
     """
 
+    input_scale_: NDArray[np.float64]
     centers_: NDArray[np.float64]
     assignments_: NDArray[np.int64]
     models_: list[Any]
     estimators_: list[LocalGP] | None
     _assign_kernel: Kernel
+    _unit_input: bool
+    _X_fit: NDArray[np.float64]
+    _centres: NDArray[np.float64]
 
     def __init__(
         self,
@@ -170,6 +219,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         n_restarts: int = 0,
         max_em_iter: int = MAX_EM_ITER,
         normalize_y: bool = True,
+        input_scale: str | float | ArrayLike = "auto",
         random_state: int | np.random.Generator | None = None,
     ) -> None:
         self.kernel = kernel
@@ -190,6 +240,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         self.n_restarts = n_restarts
         self.max_em_iter = max_em_iter
         self.normalize_y = normalize_y
+        self.input_scale = input_scale
         self.random_state = random_state
 
     def _check_params(self) -> None:
@@ -222,6 +273,46 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             raise ValueError(f"order must be 'sorted' or 'given', got {self.order!r}")
         check_noise_bounds(self.noise_bounds)
         check_method(self.method)
+        self._given_input_scale()
+
+    def _given_input_scale(self) -> NDArray[np.float64] | None:
+        """``input_scale`` as a 1-D array of positive divisors, or ``None`` for ``"auto"``."""
+        value = self.input_scale
+        if isinstance(value, str) and value == "auto":
+            return None
+        try:
+            if isinstance(value, str):
+                raise ValueError
+            scale = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            scale = np.array([np.nan])
+        if scale.ndim > 1 or scale.size == 0 or not np.all(np.isfinite(scale) & (scale > 0.0)):
+            raise ValueError(
+                "input_scale must be 'auto', a positive number or a 1-D array of positive "
+                f"numbers, got {value!r}"
+            )
+        return scale.reshape(-1)
+
+    def _input_scale(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The divisors of the inputs, ``(n_features,)`` (module docstring, "Input units")."""
+        d = X.shape[1]
+        scale = self._given_input_scale()
+        if scale is None:
+            if self.kernel is None and self.noise_kernel is None:
+                return auto_input_scale(X)
+            return np.ones(d)
+        if scale.size == 1:
+            return np.full(d, scale[0])
+        if scale.size != d:
+            raise ValueError(f"input_scale has {scale.size} entries but X has {d} features")
+        return scale
+
+    def _scaled(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``X / input_scale_``: the units the local models and the clustering work in (``X``
+        itself where every divisor is 1)."""
+        if self._unit_input:
+            return X
+        return X / self.input_scale_
 
     # ------------------------------------------------------------- Algorithm 1
     def _weights(self, X: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -355,21 +446,23 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             first: LocalGP = self.estimators_[0]
             self.X_train_, self.y_train_ = X, y
             self.n_features_in_ = X.shape[1]
+            self.input_scale_ = first.input_scale_
             self.centers_, self.assignments_ = first.centers_, first.assignments_
             self.models_ = [e.models_ for e in self.estimators_]
             return self
-        kernel, Yn, index_sets, rng = self._begin(X, y)
+        kernel, Xs, Yn, index_sets, rng = self._begin(X, y)
         # Algorithm 1, lines 22-25: one GP per local data set.
         if self.local_model == "exact":
-            self.models_ = self._fit_exact(kernel, X, Yn, index_sets, rng)
+            self.models_ = self._fit_exact(kernel, Xs, Yn, index_sets, rng)
         else:
-            self.models_ = self._fit_heteroscedastic(kernel, X, Yn[:, 0], index_sets, rng)
+            self.models_ = self._fit_heteroscedastic(kernel, Xs, Yn[:, 0], index_sets, rng)
         self._prepare_prediction()
         return self
 
     def _begin(self, X, y):
         """``fit`` up to the local models: normalisation, Algorithm 1 and the local index sets.
-        Returns ``(kernel, Yn, index_sets, rng)``."""
+        Returns ``(kernel, Xs, Yn, index_sets, rng)``, ``Xs = X / input_scale_`` (the models'
+        inputs)."""
         kernel = default_kernel() if self.kernel is None else self.kernel
         self._assign_kernel = signal_kernel(kernel)
         self._single_target = y.ndim == 1
@@ -382,9 +475,13 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         Yn = (Y - self._y_mean) / self._y_std
         self.X_train_, self.y_train_ = X, y
         self.n_features_in_ = X.shape[1]
-        self.centers_, self.assignments_ = self._assign(X)  # Algorithm 1, lines 1-21
+        self.input_scale_ = self._input_scale(X)
+        self._unit_input = bool(np.all(self.input_scale_ == 1.0))
+        Xs = self._X_fit = self._scaled(X)
+        self._centres, self.assignments_ = self._assign(Xs)  # Algorithm 1, lines 1-21
+        self.centers_ = self._centres if self._unit_input else self._centres * self.input_scale_
         rng = check_random_state(self.random_state)
-        n_models = self.centers_.shape[0]
+        n_models = self._centres.shape[0]
         order = np.argsort(self.assignments_, kind="stable")
         splits = np.cumsum(np.bincount(self.assignments_, minlength=n_models))[:-1]
         index_sets = []
@@ -393,7 +490,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
                 idx = np.repeat(idx, 2)
             index_sets.append(idx)
         self._index_sets = index_sets
-        return kernel, Yn, index_sets, rng
+        return kernel, Xs, Yn, index_sets, rng
 
     def _shared_data(self, X, index_sets) -> tuple[list[NDArray[np.int64]], bool]:
         """Index sets that learn the shared hyperparameters, and whether they are complete.
@@ -538,15 +635,13 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
     # ------------------------------------------------------------- Algorithm 2
     def _prepare_prediction(self) -> None:
         """Bounding boxes and length scales that let prediction skip far-away models."""
+        X = self._X_fit  # the models' units (X_train_ / input_scale_)
         self._boxes = np.stack(
-            [
-                np.stack([self.X_train_[idx].min(axis=0), self.X_train_[idx].max(axis=0)])
-                for idx in self._index_sets
-            ]
+            [np.stack([X[idx].min(axis=0), X[idx].max(axis=0)]) for idx in self._index_sets]
         )  # (L, 2, n_features)
         spacing = []
-        for j in range(self.X_train_.shape[1]):
-            u = np.unique(self.X_train_[:, j])
+        for j in range(X.shape[1]):
+            u = np.unique(X[:, j])
             spacing.append(np.ptp(u) / (u.size - 1) if u.size > 1 else 1.0)
         self._spacing = np.asarray(spacing)  # mean spacing of distinct inputs, per feature
         self._skip_scale = []
@@ -634,7 +729,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         return mu, np.maximum(var, 1e-12), noise, prior
 
     def _combine(self, X: NDArray[np.float64]):
-        logw_nl = self._weights(X, self.centers_)  # (n, L)
+        logw_nl = self._weights(X, self._centres)  # (n, L)
         relevant = self._relevant(X, logw_nl)
         # Noise r(x), added after combining: the noise of the model whose training inputs
         # surround x (see _noise_weights); a model whose weight underflows to 0 at x adds
@@ -676,7 +771,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         return a[:, 0] if self._single_target else a
 
     def _predict_normalized(self, X):
-        return self._combine(X)
+        return self._combine(self._scaled(X))
 
     def log_marginal_likelihood(self, theta: ArrayLike | None = None, eval_gradient: bool = False):
         """Sum of the local models' log marginal likelihoods (standardised targets)."""
@@ -697,8 +792,8 @@ def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
     for j, e in enumerate(columns):
         e._check_params()
         e.estimators_ = None
-        kernel, Yn, index_sets, rng = e._begin(X, y[:, j])
-        plans.append(e._em_plan(kernel, X, Yn[:, 0], index_sets, rng))
+        kernel, Xs, Yn, index_sets, rng = e._begin(X, y[:, j])
+        plans.append(e._em_plan(kernel, Xs, Yn[:, 0], index_sets, rng))
     em = plans[0]["em"]
     learned = most_likely_em_many(
         [plan["subsets"] for plan in plans], plans[0]["kernel"], columns[0].noise_kernel, **em
