@@ -71,7 +71,8 @@ def test_debug_shows_the_traceback(monkeypatch, capsys, policy_file):
     monkeypatch.setattr(commands, "load_policy", bad)
     assert main(["evaluate", str(policy_file), "--debug"]) == 2
     err = capsys.readouterr().err
-    assert "Traceback" in err and err.rstrip().endswith("gym-coffee evaluate: error: argument POLICY: boom")
+    assert "Traceback" in err
+    assert err.rstrip().endswith("gym-coffee evaluate: error: argument POLICY: boom")
     assert main(["--debug", "evaluate", str(policy_file)]) == 2
     assert "Traceback" in capsys.readouterr().err
 
