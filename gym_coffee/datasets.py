@@ -476,6 +476,11 @@ class _H5Reader:
 
 
 def _read_robomimic(f: Any, r: _H5Reader) -> dict[str, NDArray[Any]]:
+    if f.get("data", getlink=True) is None:
+        raise DemonstrationFormatError(
+            "has no 'data' group: not a robomimic dataset written by "
+            "gym_coffee.datasets.export_robomimic (only its files can be imported)"
+        )
     data = r.group(f, "data")
     r.check_attrs_size(data)  # before any name lookup, which decodes a whole attribute
     if "gym_coffee_metadata" not in data.attrs:

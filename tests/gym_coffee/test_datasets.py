@@ -163,6 +163,12 @@ def test_robomimic_import_refuses_what_it_cannot_trust(demos, tmp_path):
 
     assert "not written by gym_coffee.datasets.export_robomimic" in edited("f.hdf5", foreign)
 
+    def other(f):  # an HDF5 file of something else altogether
+        del f["data"]
+        f["x"] = np.arange(3)
+
+    assert "has no 'data' group: not a robomimic dataset" in edited("o.hdf5", other)
+
 
 def test_one_state_demonstrations_cannot_be_exported(tmp_path):
     rng = np.random.default_rng(0)
