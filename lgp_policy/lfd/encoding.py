@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy.gp.heteroscedastic import _data_scale
 from lgp_policy.gp.local import DEFAULT_COMBINE
 
 __all__ = [
@@ -45,7 +46,18 @@ MODELS = ("local", "heteroscedastic", "exact", "empirical")
 heteroscedastic GP, ``exact`` one homoscedastic exact GP, ``empirical`` the per-phase mean and std
 across demonstrations (no GP; a baseline)."""
 MIN_STD = 1e-4
-"""Floor on predicted standard deviations (units of the dimension: rad, m)."""
+"""Absolute cap of the floor on predicted standard deviations (units of the dimension: rad, m);
+the floor itself is ``min(MIN_STD, MIN_RELATIVE_STD * scale)`` per dimension, see
+:data:`MIN_RELATIVE_STD`."""
+MIN_RELATIVE_STD = 1e-2
+"""Floor on predicted standard deviations relative to each output dimension's own scale (its
+standard deviation over all demonstrations and phases, or a float-precision scale for a constant
+dimension: :func:`lgp_policy.gp.heteroscedastic._data_scale`); the floor is
+``min(MIN_STD, MIN_RELATIVE_STD * scale)``. An absolute 1e-4 alone dominated demonstrations in
+small units (data std 7e-7: a predicted std of 1e-4 everywhere, 142x the data's std); capped at
+1% of the dimension's std it never does. The absolute cap stays because the coffee task's
+policy depends on it: its gripper column (std 0.038) is floored at 1e-4 where the four
+demonstrations coincide (the GP says 6.5e-5), and a purely relative floor would move it."""
 
 
 def new_demonstration_scale(n_demos: int, level: float = 0.95) -> float:
@@ -236,6 +248,9 @@ class DemonstrationEncoder:
         durations_: ``(n_demos,)`` durations of the demonstrations (time units of the input).
         fit_time_: seconds spent in :meth:`fit`.
         std_scale_: the factor :meth:`predict` applies to the models' std (``calibrate``).
+        std_floor_: per frame, ``(d,)`` the floor of each dimension's predicted std,
+            ``min(MIN_STD, MIN_RELATIVE_STD * scale)`` with ``scale`` the dimension's standard
+            deviation in ``data_`` (a float-precision scale if it is constant).
     """
 
     def __init__(
@@ -392,6 +407,14 @@ class DemonstrationEncoder:
             data[name] = np.stack(rel)
         self.data_ = data
         self.frame_names_ = [JOINT_FRAME, *names]
+        self.std_floor_ = {
+            name: np.minimum(
+                MIN_STD,
+                MIN_RELATIVE_STD
+                * np.array([_data_scale(Y[:, :, j].reshape(-1)) for j in range(Y.shape[2])]),
+            )
+            for name, Y in data.items()
+        }
         X = np.tile(self.phase_, n)[:, None]
         self.models_: dict[str, list[Any]] = {}
         for name in self.frame_names_:
@@ -427,7 +450,8 @@ class DemonstrationEncoder:
             frame: ``"joint"`` or an object name.
 
         Returns:
-            ``(mean (n, d), std (n, d))``.
+            ``(mean (n, d), std (n, d))``; each std at least the dimension's floor
+            (:attr:`std_floor_`).
         """
         self._check_fitted()
         if frame not in self.models_:
@@ -439,7 +463,7 @@ class DemonstrationEncoder:
             means.append(np.asarray(mu, dtype=float).reshape(-1))
             stds.append(np.asarray(sd, dtype=float).reshape(-1))
         std = np.stack(stds, axis=1) * self.std_scale_
-        return np.stack(means, axis=1), np.maximum(std, MIN_STD)
+        return np.stack(means, axis=1), np.maximum(std, self.std_floor_[frame])
 
     def constraint_profile(
         self, phase: ArrayLike | None = None

@@ -188,3 +188,60 @@ def test_new_demonstration_scale_is_the_t_over_gaussian_quantile_ratio():
     assert new_demonstration_scale(4) == pytest.approx(1.62, abs=0.01)
     scales = [new_demonstration_scale(n) for n in range(2, 30)]
     assert all(a > b > 1.0 for a, b in itertools.pairwise(scales))
+
+
+def _sine_demos(n=4, n_samples=60, seed=0):
+    """``n`` demonstrations of one sine-shaped output on their own time grids (unit scale),
+    coinciding at the start and the end (spread ~0.1 in between)."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, 1.0, n_samples)
+    times = [rng.uniform(3.0, 6.0) * s for _ in range(n)]
+    ys = [np.sin(2 * np.pi * s) + 0.1 * rng.standard_normal() * np.sin(np.pi * s) for _ in range(n)]
+    return times, ys
+
+
+@pytest.mark.parametrize("model", ["local", "empirical"])
+def test_std_floor_is_relative_to_each_dimensions_own_scale(model):
+    """Demonstrations in small units get the std of the same demonstrations in other small
+    units, scaled (the floor is a fraction of each dimension's std, not 1e-4 in its units), and
+    the std never exceeds the dimension's spread by much, whatever its unit."""
+    times, ys = _sine_demos()
+    stds = {}
+    for unit in (1e-3, 1e-6, 1e-9):
+        enc = DemonstrationEncoder(n_steps=50, model=model)
+        enc.fit(times, [unit * y[:, None] for y in ys])
+        _, std = enc.predict(np.linspace(0.0, 1.0, 41))
+        data_std = np.std(enc.data_["joint"])
+        assert np.all(np.isfinite(std)) and np.all(std > 0)
+        assert std.max() <= 0.5 * data_std, (unit, std.max() / data_std)
+        stds[unit] = std / unit
+    np.testing.assert_allclose(stds[1e-6], stds[1e-3], rtol=1e-6)
+    np.testing.assert_allclose(stds[1e-9], stds[1e-3], rtol=1e-6)
+
+
+def test_std_floor_per_dimension_next_to_a_huge_and_a_nearly_constant_one():
+    """Columns in 1e-6 units, 1e6 units and ``0.35 + 1e-9 y``: each std within 100x the
+    column's own std (the floor of one column does not depend on the others)."""
+    times, ys = _sine_demos(seed=1)
+    joints = [np.column_stack([1e-6 * y, 1e6 * y, 0.35 + 1e-9 * y]) for y in ys]
+    enc = DemonstrationEncoder(n_steps=50, model="empirical").fit(times, joints)
+    _, std = enc.predict(np.linspace(0.0, 1.0, 41))
+    data_std = enc.data_["joint"].reshape(-1, 3).std(axis=0)
+    assert np.all(np.isfinite(std)) and np.all(std > 0)
+    assert np.all(std.max(axis=0) <= 100.0 * data_std), std.max(axis=0) / data_std
+    assert np.all(std.min(axis=0) <= 0.01 * data_std)  # the floor lets the coinciding ends be tight
+
+
+@pytest.mark.parametrize("model", ["local", "empirical"])
+@pytest.mark.parametrize("value", [0.0, 0.35, 1000.0])
+def test_exactly_constant_dimension_gets_a_tiny_positive_std(model, value):
+    """A dimension all demonstrations hold at one value: mean that value, std finite, > 0 and
+    at the level of the values' float precision (not a floor in their units, nor growing with
+    the value beyond that)."""
+    times, ys = _sine_demos(n=3, seed=2)
+    joints = [np.column_stack([y, np.full_like(y, value)]) for y in ys]
+    enc = DemonstrationEncoder(n_steps=50, model=model).fit(times, joints)
+    mean, std = enc.predict(np.linspace(0.0, 1.0, 41))
+    np.testing.assert_allclose(mean[:, 1], value, rtol=1e-12, atol=1e-300)
+    assert np.all(np.isfinite(std)) and np.all(std > 0)
+    assert np.all(std[:, 1] <= 1e-12 * abs(value) + 1e-100), std[:, 1].max()
