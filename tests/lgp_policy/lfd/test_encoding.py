@@ -245,3 +245,71 @@ def test_exactly_constant_dimension_gets_a_tiny_positive_std(model, value):
     np.testing.assert_allclose(mean[:, 1], value, rtol=1e-12, atol=1e-300)
     assert np.all(np.isfinite(std)) and np.all(std > 0)
     assert np.all(std[:, 1] <= 1e-12 * abs(value) + 1e-100), std[:, 1].max()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda t, q: ([t[0], np.r_[t[1][:-1], np.nan]], q), r"times\[1\] .*NaN"),
+        (lambda t, q: ([t[0], np.r_[t[1][:3], t[1][2], t[1][4:]]], q), r"times\[1\] .*increasing"),
+        (lambda t, q: ([t[0], t[1][::-1]], q), r"times\[1\] .*increasing"),
+        (lambda t, q: ([t[0][:, None], t[1]], q), r"times\[0\] .*1-D.*\(60, 1\)"),
+        (lambda t, q: ([t[0], t[1][:1]], [q[0], q[1][:1]]), r"times\[1\] .*at least 2"),
+        (lambda t, q: ([t[0], ["a"] * 60], q), r"times\[1\] .*numbers"),
+        (lambda t, q: ([], []), r"times .*at least one"),
+        (lambda t, q: (t, [q[0], np.r_[q[1][:-1], [[np.nan]]]]), r"joint_pos\[1\] .*NaN"),
+        (
+            lambda t, q: (t, [q[0], np.c_[q[1], q[1]]]),
+            r"joint_pos\[1\] .*2 columns.*joint_pos\[0\]",
+        ),
+        (lambda t, q: (t, [q[0][:, :0], q[1][:, :0]]), r"joint_pos\[0\] .*no columns"),
+        (lambda t, q: (t, [q[0], q[1][:-1]]), r"joint_pos\[1\] .*59 rows.*times\[1\]"),
+        (lambda t, q: (t, [q[0], q[1][:, :, None]]), r"joint_pos\[1\] .*shape"),
+        (lambda t, q: (t, q[:1]), r"joint_pos .*2"),
+    ],
+)
+def test_fit_names_the_bad_argument(change, message):
+    times, ys = _sine_demos(n=2)
+    t, q = change(times, [y[:, None] for y in ys])
+    with pytest.raises(ValueError, match=message):
+        DemonstrationEncoder(model="empirical").fit(t, q)
+
+
+def test_fit_names_bad_frames_ee_pos_and_landmarks():
+    times, joints, ees, frames = synthetic_demos(n=2)
+    fit = DemonstrationEncoder(model="empirical").fit
+    bad_ee = [ees[0], np.r_[ees[1][:-1], [[np.nan] * 3]]]
+    with pytest.raises(ValueError, match=r"ee_pos\[1\] .*NaN"):
+        fit(times, joints, bad_ee, frames)
+    with pytest.raises(ValueError, match=r"ee_pos\[0\] .*rows.*times\[0\]"):
+        fit(times, joints, [ees[0][:-1], ees[1]], frames)
+    with pytest.raises(ValueError, match=r"ee_pos .*frames"):
+        fit(times, joints, None, frames)
+    with pytest.raises(ValueError, match=r"frames\[1\]\['cup'\] .*pair"):
+        fit(times, joints, ees, [frames[0], {"cup": frames[1]["cup"][0]}])
+    with pytest.raises(ValueError, match=r"frames\[1\]\['cup'\]: origin .*finite"):
+        fit(times, joints, ees, [frames[0], {"cup": (np.full(3, np.nan), np.eye(3))}])
+    with pytest.raises(ValueError, match=r"frames\[0\] .*'joint'.*reserved"):
+        fit(times, joints, ees, [{**f, "joint": f["cup"]} for f in frames])
+    mid = [t[len(t) // 2] for t in times]
+    with pytest.raises(ValueError, match=r"landmarks\[1\] .*NaN"):
+        fit(times, joints, ees, frames, landmarks=[[mid[0]], [np.nan]])
+    with pytest.raises(ValueError, match=r"landmarks\[1\] .*inside"):
+        fit(times, joints, ees, frames, landmarks=[[mid[0]], [times[1][-1] + 1.0]])
+    with pytest.raises(ValueError, match=r"landmarks\[1\] .*1 .*landmarks\[0\] .*2"):
+        fit(times, joints, ees, frames, landmarks=[[mid[0], mid[0] + 0.1], [mid[1]]])
+
+
+def test_predict_names_the_bad_argument():
+    times, ys = _sine_demos(n=2)
+    enc = DemonstrationEncoder(n_steps=20, model="empirical").fit(times, [y[:, None] for y in ys])
+    with pytest.raises(ValueError, match=r"phase .*NaN"):
+        enc.predict([0.1, np.nan])
+    with pytest.raises(ValueError, match=r"phase .*numbers"):
+        enc.predict(["x"])
+    with pytest.raises(ValueError, match=r"phase .*1-D"):
+        enc.predict(np.zeros((3, 2)))
+    with pytest.raises(ValueError, match=r"frame must be one of \['joint'\], got 'cup'"):
+        enc.predict([0.5], "cup")
+    with pytest.raises(KeyError):  # still a KeyError for callers that catch one
+        enc.predict([0.5], "cup")
