@@ -543,13 +543,29 @@ def fit_noise_model(
     return most_likely_em(datasets, kernel, noise_kernel, **kwargs)
 
 
+CONSTANT_SCALE = 4.0 * float(np.finfo(np.float64).eps)
+"""Scale of a constant output relative to its magnitude (:func:`_data_scale`): a few units in
+the last place of the values, the finest variation they can carry. Rounding (a mean of many
+copies of 0.35 is off by one ulp, and ``np.std`` is then 1.1e-16, not 0) stays below it, so a
+constant gets this scale however its values were computed."""
+MIN_DATA_SCALE = 1e-150
+"""Smallest scale of an output (a column of zeros gets it): tiny, yet the square of a std
+1e-3 of it (the noise floor, :data:`NOISE_BOUNDS`) is still a normal float (1e-306), so
+variances and precisions derived from it stay finite and > 0."""
+
+
 def _data_scale(y: NDArray[np.float64]) -> float:
-    """Standard deviation of ``y``; for constant ``y`` its magnitude (1 if it is 0)."""
-    std = float(np.std(y))
-    if std > 0:
-        return std
+    """Standard deviation of ``y``, or for a constant ``y`` a scale at its float precision.
+
+    ``max(std(y), CONSTANT_SCALE * max|y|, MIN_DATA_SCALE)``: for a constant output the scale
+    does not depend on its value beyond the values' own precision (a std proportional to the
+    value, the earlier rule, gave ``c = 1e6`` a predicted std of 1.6e3 and ``c = 0`` one of
+    1.4e-3, while ``1000 + 1e-3 y`` got 1e-4); any output that varies by more than a few ulps
+    keeps its standard deviation.
+    """
+    std = float(np.std(y)) if y.size else 0.0
     mag = float(np.max(np.abs(y))) if y.size else 0.0
-    return mag if mag > 0 else 1.0
+    return max(std, CONSTANT_SCALE * mag, MIN_DATA_SCALE)
 
 
 def check_noise_bounds(noise_bounds: Any) -> tuple[float, float]:

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from lgp_policy.gp.heteroscedastic import _data_scale
 from lgp_policy.gp.local import DEFAULT_COMBINE
 
 __all__ = [
@@ -45,7 +46,18 @@ MODELS = ("local", "heteroscedastic", "exact", "empirical")
 heteroscedastic GP, ``exact`` one homoscedastic exact GP, ``empirical`` the per-phase mean and std
 across demonstrations (no GP; a baseline)."""
 MIN_STD = 1e-4
-"""Floor on predicted standard deviations (units of the dimension: rad, m)."""
+"""Absolute cap of the floor on predicted standard deviations (units of the dimension: rad, m);
+the floor itself is ``min(MIN_STD, MIN_RELATIVE_STD * scale)`` per dimension, see
+:data:`MIN_RELATIVE_STD`."""
+MIN_RELATIVE_STD = 1e-2
+"""Floor on predicted standard deviations relative to each output dimension's own scale (its
+standard deviation over all demonstrations and phases, or a float-precision scale for a constant
+dimension: :func:`lgp_policy.gp.heteroscedastic._data_scale`); the floor is
+``min(MIN_STD, MIN_RELATIVE_STD * scale)``. An absolute 1e-4 alone dominated demonstrations in
+small units (data std 7e-7: a predicted std of 1e-4 everywhere, 142x the data's std); capped at
+1% of the dimension's std it never does. The absolute cap stays because the coffee task's
+policy depends on it: its gripper column (std 0.038) is floored at 1e-4 where the four
+demonstrations coincide (the GP says 6.5e-5), and a purely relative floor would move it."""
 
 
 def new_demonstration_scale(n_demos: int, level: float = 0.95) -> float:
@@ -187,6 +199,158 @@ def _to_frame(
     return ((pts - o) @ R).reshape(len(x), -1)  # R^T (x - o), row-wise
 
 
+def _entries(value: Any, name: str, n: int | None = None) -> list[Any]:
+    """``value`` as a list of per-demonstration entries (``n`` of them when given)."""
+    if isinstance(value, (str, bytes, Mapping)) or not hasattr(value, "__len__"):
+        raise ValueError(
+            f"{name} must be a sequence with one entry per demonstration, "
+            f"got {type(value).__name__}"
+        )
+    out = list(value)
+    if n is not None and len(out) != n:
+        raise ValueError(
+            f"{name} must have one entry per demonstration: {n} (as times), got {len(out)}"
+        )
+    return out
+
+
+def _real_array(value: Any, where: str) -> NDArray[np.float64]:
+    """``value`` as a float array, or a ValueError naming ``where``."""
+    try:
+        raw = np.asarray(value)
+        if raw.dtype.kind not in "biuf":
+            raise TypeError(f"dtype {raw.dtype}")
+        return np.asarray(raw, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where} must be an array of real numbers ({exc})") from None
+
+
+def _check_finite(a: NDArray[np.float64], where: str) -> None:
+    bad = ~np.isfinite(a)
+    if bad.any():
+        at = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{where} contains NaN or infinity (first at index {at[0] if len(at) == 1 else at})"
+        )
+
+
+def _check_times(value: Any, i: int) -> NDArray[np.float64]:
+    """``times[i]``: 1-D, at least 2 finite, strictly increasing time stamps."""
+    where = f"times[{i}]"
+    t = _real_array(value, where)
+    if t.ndim != 1:
+        raise ValueError(f"{where} must be 1-D, (n_i,) time stamps, got shape {t.shape}")
+    if t.size < 2:
+        raise ValueError(f"{where} needs at least 2 time stamps, got {t.size}")
+    _check_finite(t, where)
+    step = np.diff(t)
+    if np.any(step <= 0):
+        k = int(np.argmax(step <= 0))
+        raise ValueError(
+            f"{where} must be strictly increasing, but {where}[{k + 1}] = {float(t[k + 1])!r} "
+            f"follows {where}[{k}] = {float(t[k])!r}"
+        )
+    if not np.isfinite(t[-1] - t[0]):
+        raise ValueError(
+            f"{where} spans {float(t[0])!r} to {float(t[-1])!r}: its duration is not finite"
+        )
+    return t
+
+
+def _check_samples(
+    value: Any, where: str, t: NDArray[np.float64], i: int, *, allow_1d: bool
+) -> NDArray[np.float64]:
+    """``(n_i, d)`` finite samples (``(n_i,)`` as one column if ``allow_1d``), one per time."""
+    a = _real_array(value, where)
+    if a.ndim == 1 and allow_1d:
+        a = a[:, None]
+    if a.ndim != 2:
+        expected = "(n_i, d) or (n_i,)" if allow_1d else "(n_i, d)"
+        raise ValueError(f"{where} must have shape {expected}, got shape {a.shape}")
+    if a.shape[0] != t.size:
+        raise ValueError(
+            f"{where} has {a.shape[0]} rows but times[{i}] has {t.size} time stamps: "
+            "one row per time stamp"
+        )
+    if a.shape[1] == 0:
+        raise ValueError(f"{where} has no columns: need at least one dimension")
+    _check_finite(a, where)
+    return a
+
+
+def _check_frames(value: Any, n: int, ee_pos: Any) -> tuple[list[str], list[Mapping[str, Any]]]:
+    """The object names (sorted) and the per-demonstration frames, checked."""
+    frames = _entries(value, "frames", n)
+    if ee_pos is None:
+        raise ValueError("ee_pos is required with frames: one (n_i, k d) array per demonstration")
+    names: list[str] = []
+    for i, f in enumerate(frames):
+        if not isinstance(f, Mapping):
+            raise ValueError(
+                f"frames[{i}] must be a mapping {{object name: (origin, rotation)}}, "
+                f"got {type(f).__name__}"
+            )
+        for key in f:
+            if not isinstance(key, str):
+                raise ValueError(f"frames[{i}] keys must be object names (str), got {key!r}")
+        if JOINT_FRAME in f:
+            raise ValueError(
+                f"frames[{i}] names an object {JOINT_FRAME!r}: that name is reserved for the "
+                "joint frame"
+            )
+        got = sorted(f)
+        if i == 0:
+            names = got
+        elif got != names:
+            raise ValueError(
+                f"frames[{i}] names the objects {got} but frames[0] names {names}: every "
+                "demonstration must name the same objects"
+            )
+        for name in got:
+            pose = f[name]
+            if isinstance(pose, (str, bytes)) or not hasattr(pose, "__len__") or len(pose) != 2:
+                raise ValueError(
+                    f"frames[{i}][{name!r}] must be a pair (origin, rotation), got "
+                    f"{type(pose).__name__}"
+                    + (f" of length {len(pose)}" if hasattr(pose, "__len__") else "")
+                )
+            _real_array(pose[0], f"frames[{i}][{name!r}]: origin")
+            _real_array(pose[1], f"frames[{i}][{name!r}]: rotation")
+    return names, frames
+
+
+def _check_landmarks(value: Any, ts: list[NDArray[np.float64]]) -> list[NDArray[np.float64]]:
+    """Per demonstration, ``(k,)`` strictly increasing times inside its time range, the same
+    ``k`` for all."""
+    marks: list[NDArray[np.float64]] = []
+    for i, m in enumerate(_entries(value, "landmarks", len(ts))):
+        where = f"landmarks[{i}]"
+        a = _real_array(m, where)
+        if a.ndim > 1:
+            raise ValueError(f"{where} must be 1-D, (k,) event times, got shape {a.shape}")
+        a = a.reshape(-1)
+        _check_finite(a, where)
+        if i and a.size != marks[0].size:
+            raise ValueError(
+                f"{where} has {a.size} events but landmarks[0] has {marks[0].size}: every "
+                "demonstration needs as many landmarks"
+            )
+        t = ts[i]
+        if a.size and (np.any(np.diff(a) <= 0) or a[0] <= t[0] or a[-1] >= t[-1]):
+            raise ValueError(
+                f"{where} must be strictly increasing times inside times[{i}]'s range "
+                f"({float(t[0])!r}, {float(t[-1])!r}), got {a.tolist()}"
+            )
+        marks.append(a)
+    return marks
+
+
+class _UnknownFrameError(ValueError, KeyError):
+    """An unknown frame name: a ValueError, and a KeyError as before."""
+
+    __str__ = ValueError.__str__  # not KeyError's repr of the message
+
+
 class _Empirical:
     """Per-phase mean and std across demonstrations (no GP); the ``empirical`` encoder."""
 
@@ -236,6 +400,9 @@ class DemonstrationEncoder:
         durations_: ``(n_demos,)`` durations of the demonstrations (time units of the input).
         fit_time_: seconds spent in :meth:`fit`.
         std_scale_: the factor :meth:`predict` applies to the models' std (``calibrate``).
+        std_floor_: per frame, ``(d,)`` the floor of each dimension's predicted std,
+            ``min(MIN_STD, MIN_RELATIVE_STD * scale)`` with ``scale`` the dimension's standard
+            deviation in ``data_`` (a float-precision scale if it is constant).
     """
 
     def __init__(
@@ -336,62 +503,87 @@ class DemonstrationEncoder:
 
         Returns:
             ``self``.
+
+        Raises:
+            ValueError: naming the argument and the demonstration (``times[2]``,
+                ``joint_pos[1]``, ``frames[0]['cup']``, ...) and what was expected, before any
+                work: time stamps that are not 1-D, finite and strictly increasing, samples
+                that are not finite or whose rows do not match the time stamps, dimensions that
+                differ between demonstrations, landmarks outside a demonstration's time range.
         """
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
-        if self.n_steps < 2:
-            raise ValueError(f"n_steps must be >= 2, got {self.n_steps}")
-        n = len(times)
+        if (
+            isinstance(self.n_steps, bool)
+            or not isinstance(self.n_steps, (int, np.integer))
+            or self.n_steps < 2
+        ):
+            raise ValueError(f"n_steps must be an int >= 2, got {self.n_steps!r}")
+        if progress is not None and not callable(progress):
+            raise ValueError(f"progress must be callable or None, got {type(progress).__name__}")
+        # every argument is checked before any work
+        ts = [_check_times(t, i) for i, t in enumerate(_entries(times, "times"))]
+        n = len(ts)
         if n == 0:
-            raise ValueError("need at least one demonstration")
-        if len(joint_pos) != n:
-            raise ValueError(f"{n} time arrays but {len(joint_pos)} joint arrays")
-        frames = list(frames or [])
-        if frames and (ee_pos is None or len(ee_pos) != n or len(frames) != n):
-            raise ValueError("ee_pos and frames need one entry per demonstration")
-        names = sorted(frames[0]) if frames else []
-        for f in frames:
-            if sorted(f) != names:
+            raise ValueError("times must hold at least one demonstration, got none")
+        qs = [
+            _check_samples(q, f"joint_pos[{i}]", ts[i], i, allow_1d=True)
+            for i, q in enumerate(_entries(joint_pos, "joint_pos", n))
+        ]
+        for i, q in enumerate(qs):
+            if q.shape[1] != qs[0].shape[1]:
                 raise ValueError(
-                    f"every demonstration must name the objects {names}, got {sorted(f)}"
+                    f"joint_pos[{i}] has {q.shape[1]} columns but joint_pos[0] has "
+                    f"{qs[0].shape[1]}: every demonstration needs the same dimensions"
                 )
-        start = _time.perf_counter()
-        self.phase_ = np.linspace(0.0, 1.0, self.n_steps)
-        self.durations_ = np.array(
-            [float(np.asarray(t, dtype=float)[-1] - np.asarray(t, dtype=float)[0]) for t in times]
-        )
-        marks: list[Any] = [None] * n
-        self.landmark_phases_ = np.zeros(0)
-        if landmarks is not None:
-            if len(landmarks) != n:
-                raise ValueError("landmarks need one entry per demonstration")
-            marks = [np.asarray(m, dtype=float).reshape(-1) for m in landmarks]
-            if len({m.size for m in marks}) != 1:
-                raise ValueError(
-                    f"every demonstration needs as many landmarks, got {[m.size for m in marks]}"
-                )
-            rel_marks = [
-                (m - np.asarray(t, dtype=float)[0]) / d
-                for m, t, d in zip(marks, times, self.durations_, strict=True)
+        names: list[str] = []
+        locals_: dict[str, list[NDArray[np.float64]]] = {}
+        if frames is not None and len(_entries(frames, "frames")) > 0:
+            names, frame_list = _check_frames(frames, n, ee_pos)
+            xs = [
+                _check_samples(x, f"ee_pos[{i}]", ts[i], i, allow_1d=False)
+                for i, x in enumerate(_entries(ee_pos, "ee_pos", n))
             ]
+            locals_ = {
+                name: [
+                    _to_frame(x, *f[name], name=name, demo=i)
+                    for i, (x, f) in enumerate(zip(xs, frame_list, strict=True))
+                ]
+                for name in names
+            }
+        marks: list[Any] = [None] * n
+        if landmarks is not None:
+            marks = _check_landmarks(landmarks, ts)
+        start = _time.perf_counter()
+        self.landmark_phases_ = np.zeros(0)
+        self.phase_ = np.linspace(0.0, 1.0, self.n_steps)
+        self.durations_ = np.array([float(t[-1] - t[0]) for t in ts])
+        if landmarks is not None:
+            rel_marks = [(m - t[0]) / d for m, t, d in zip(marks, ts, self.durations_, strict=True)]
             self.landmark_phases_ = np.mean(rel_marks, axis=0)
         lp = self.landmark_phases_
         data = {
             JOINT_FRAME: np.stack(
-                [
-                    resample(t, q, self.n_steps, m, lp)
-                    for t, q, m in zip(times, joint_pos, marks, strict=True)
-                ]
+                [resample(t, q, self.n_steps, m, lp) for t, q, m in zip(ts, qs, marks, strict=True)]
             )
         }
         for name in names:
-            rel = []
-            for i, (t, x, f, mk) in enumerate(zip(times, ee_pos or [], frames, marks, strict=True)):
-                local = _to_frame(np.asarray(x, dtype=float), *f[name], name=name, demo=i)
-                rel.append(resample(t, local, self.n_steps, mk, lp))
-            data[name] = np.stack(rel)
+            data[name] = np.stack(
+                [
+                    resample(t, local, self.n_steps, mk, lp)
+                    for t, local, mk in zip(ts, locals_[name], marks, strict=True)
+                ]
+            )
         self.data_ = data
         self.frame_names_ = [JOINT_FRAME, *names]
+        self.std_floor_ = {
+            name: np.minimum(
+                MIN_STD,
+                MIN_RELATIVE_STD
+                * np.array([_data_scale(Y[:, :, j].reshape(-1)) for j in range(Y.shape[2])]),
+            )
+            for name, Y in data.items()
+        }
         X = np.tile(self.phase_, n)[:, None]
         self.models_: dict[str, list[Any]] = {}
         for name in self.frame_names_:
@@ -427,19 +619,28 @@ class DemonstrationEncoder:
             frame: ``"joint"`` or an object name.
 
         Returns:
-            ``(mean (n, d), std (n, d))``.
+            ``(mean (n, d), std (n, d))``; each std at least the dimension's floor
+            (:attr:`std_floor_`).
+
+        Raises:
+            ValueError: ``phase`` not 1-D finite real numbers, or an unknown ``frame`` (also a
+                ``KeyError``).
         """
         self._check_fitted()
-        if frame not in self.models_:
-            raise KeyError(f"unknown frame {frame!r}; known: {self.frame_names_}")
-        X = np.asarray(phase, dtype=float).reshape(-1, 1)
+        if not isinstance(frame, str) or frame not in self.models_:
+            raise _UnknownFrameError(f"frame must be one of {self.frame_names_}, got {frame!r}")
+        s = _real_array(phase, "phase")
+        if s.ndim > 1:
+            raise ValueError(f"phase must be 1-D, (n,) phases, got shape {s.shape}")
+        _check_finite(s.reshape(-1), "phase")
+        X = s.reshape(-1, 1)
         means, stds = [], []
         for m in self.models_[frame]:
             mu, sd = m.predict(X, return_std=True)
             means.append(np.asarray(mu, dtype=float).reshape(-1))
             stds.append(np.asarray(sd, dtype=float).reshape(-1))
         std = np.stack(stds, axis=1) * self.std_scale_
-        return np.stack(means, axis=1), np.maximum(std, MIN_STD)
+        return np.stack(means, axis=1), np.maximum(std, self.std_floor_[frame])
 
     def constraint_profile(
         self, phase: ArrayLike | None = None

@@ -108,6 +108,42 @@ def test_constant_output_is_reproduced_with_a_small_finite_std(model):
 
 
 @pytest.mark.parametrize("model", sorted(MODELS))
+@pytest.mark.parametrize("value", [0.0, 3.0, 1000.0, 1e6, -0.35])
+def test_a_constant_output_has_the_same_tiny_std_whatever_its_value(model, value):
+    """Shifting a constant does not change its std beyond the values' float precision: the
+    std is finite, > 0 and a few ulps of the value (c = 1000 had 1.64, c = 1e6 1.6e3)."""
+    X = np.tile(np.linspace(0.0, 1.0, 30), 3)[:, None]
+    y = np.full(X.shape[0], value)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = MODELS[model]().fit(X, y)
+    mean, std = gp.predict(np.linspace(-0.5, 1.5, 21)[:, None], return_std=True)
+    np.testing.assert_allclose(mean, value, rtol=1e-12, atol=1e-300)
+    assert np.all(np.isfinite(std)) and np.all(std > 0)
+    assert np.all(std <= 1e-12 * abs(value) + 1e-100), std.max()
+    assert np.all(np.isfinite(gp.noise_variance(X)))
+
+
+def test_data_scale_is_the_std_or_an_offset_free_float_precision_scale():
+    from lgp_policy.gp.heteroscedastic import MIN_DATA_SCALE, _data_scale
+
+    y = np.sin(np.linspace(0.0, 6.0, 50))
+    assert _data_scale(y) == np.std(y)
+    assert _data_scale(1000.0 + 1e-3 * y) == np.std(1000.0 + 1e-3 * y)
+    assert _data_scale(1e-9 * y) == np.std(1e-9 * y)
+    for c in (3.0, 1000.0, 1e6, -2.5, 1 / 3):
+        scale = _data_scale(np.full(90, c))
+        assert 0 < scale <= 1e-14 * abs(c)
+        # rounding-level variation of a constant gets the same scale
+        assert _data_scale(c + np.spacing(c) * (np.arange(90) % 2)) == pytest.approx(
+            scale, rel=1e-12
+        )
+    assert _data_scale(np.zeros(10)) == MIN_DATA_SCALE
+    assert _data_scale(np.zeros(0)) == MIN_DATA_SCALE
+    assert 0 < MIN_DATA_SCALE <= 1e-100 and np.isfinite((1e-3 * MIN_DATA_SCALE) ** 2 * 1e300)
+
+
+@pytest.mark.parametrize("model", sorted(MODELS))
 @pytest.mark.parametrize("n_outputs", [2, 3])
 def test_multi_output_of_wildly_different_scales(model, n_outputs):
     """Columns of scale 1e6, 1e-6 (and 1): each is modelled on its own scale."""

@@ -188,3 +188,128 @@ def test_new_demonstration_scale_is_the_t_over_gaussian_quantile_ratio():
     assert new_demonstration_scale(4) == pytest.approx(1.62, abs=0.01)
     scales = [new_demonstration_scale(n) for n in range(2, 30)]
     assert all(a > b > 1.0 for a, b in itertools.pairwise(scales))
+
+
+def _sine_demos(n=4, n_samples=60, seed=0):
+    """``n`` demonstrations of one sine-shaped output on their own time grids (unit scale),
+    coinciding at the start and the end (spread ~0.1 in between)."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, 1.0, n_samples)
+    times = [rng.uniform(3.0, 6.0) * s for _ in range(n)]
+    ys = [np.sin(2 * np.pi * s) + 0.1 * rng.standard_normal() * np.sin(np.pi * s) for _ in range(n)]
+    return times, ys
+
+
+@pytest.mark.parametrize("model", ["local", "empirical"])
+def test_std_floor_is_relative_to_each_dimensions_own_scale(model):
+    """Demonstrations in small units get the std of the same demonstrations in other small
+    units, scaled (the floor is a fraction of each dimension's std, not 1e-4 in its units), and
+    the std never exceeds the dimension's spread by much, whatever its unit."""
+    times, ys = _sine_demos()
+    stds = {}
+    for unit in (1e-3, 1e-6, 1e-9):
+        enc = DemonstrationEncoder(n_steps=50, model=model)
+        enc.fit(times, [unit * y[:, None] for y in ys])
+        _, std = enc.predict(np.linspace(0.0, 1.0, 41))
+        data_std = np.std(enc.data_["joint"])
+        assert np.all(np.isfinite(std)) and np.all(std > 0)
+        assert std.max() <= 0.5 * data_std, (unit, std.max() / data_std)
+        stds[unit] = std / unit
+    np.testing.assert_allclose(stds[1e-6], stds[1e-3], rtol=1e-6)
+    np.testing.assert_allclose(stds[1e-9], stds[1e-3], rtol=1e-6)
+
+
+def test_std_floor_per_dimension_next_to_a_huge_and_a_nearly_constant_one():
+    """Columns in 1e-6 units, 1e6 units and ``0.35 + 1e-9 y``: each std within 100x the
+    column's own std (the floor of one column does not depend on the others)."""
+    times, ys = _sine_demos(seed=1)
+    joints = [np.column_stack([1e-6 * y, 1e6 * y, 0.35 + 1e-9 * y]) for y in ys]
+    enc = DemonstrationEncoder(n_steps=50, model="empirical").fit(times, joints)
+    _, std = enc.predict(np.linspace(0.0, 1.0, 41))
+    data_std = enc.data_["joint"].reshape(-1, 3).std(axis=0)
+    assert np.all(np.isfinite(std)) and np.all(std > 0)
+    assert np.all(std.max(axis=0) <= 100.0 * data_std), std.max(axis=0) / data_std
+    assert np.all(std.min(axis=0) <= 0.01 * data_std)  # the floor lets the coinciding ends be tight
+
+
+@pytest.mark.parametrize("model", ["local", "empirical"])
+@pytest.mark.parametrize("value", [0.0, 0.35, 1000.0])
+def test_exactly_constant_dimension_gets_a_tiny_positive_std(model, value):
+    """A dimension all demonstrations hold at one value: mean that value, std finite, > 0 and
+    at the level of the values' float precision (not a floor in their units, nor growing with
+    the value beyond that)."""
+    times, ys = _sine_demos(n=3, seed=2)
+    joints = [np.column_stack([y, np.full_like(y, value)]) for y in ys]
+    enc = DemonstrationEncoder(n_steps=50, model=model).fit(times, joints)
+    mean, std = enc.predict(np.linspace(0.0, 1.0, 41))
+    np.testing.assert_allclose(mean[:, 1], value, rtol=1e-12, atol=1e-300)
+    assert np.all(np.isfinite(std)) and np.all(std > 0)
+    assert np.all(std[:, 1] <= 1e-12 * abs(value) + 1e-100), std[:, 1].max()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda t, q: ([t[0], np.r_[t[1][:-1], np.nan]], q), r"times\[1\] .*NaN"),
+        (lambda t, q: ([t[0], np.r_[t[1][:3], t[1][2], t[1][4:]]], q), r"times\[1\] .*increasing"),
+        (lambda t, q: ([t[0], t[1][::-1]], q), r"times\[1\] .*increasing"),
+        (lambda t, q: ([t[0][:, None], t[1]], q), r"times\[0\] .*1-D.*\(60, 1\)"),
+        (lambda t, q: ([t[0], t[1][:1]], [q[0], q[1][:1]]), r"times\[1\] .*at least 2"),
+        (lambda t, q: ([t[0], ["a"] * 60], q), r"times\[1\] .*numbers"),
+        (lambda t, q: ([], []), r"times .*at least one"),
+        (lambda t, q: (t, [q[0], np.r_[q[1][:-1], [[np.nan]]]]), r"joint_pos\[1\] .*NaN"),
+        (
+            lambda t, q: (t, [q[0], np.c_[q[1], q[1]]]),
+            r"joint_pos\[1\] .*2 columns.*joint_pos\[0\]",
+        ),
+        (lambda t, q: (t, [q[0][:, :0], q[1][:, :0]]), r"joint_pos\[0\] .*no columns"),
+        (lambda t, q: (t, [q[0], q[1][:-1]]), r"joint_pos\[1\] .*59 rows.*times\[1\]"),
+        (lambda t, q: (t, [q[0], q[1][:, :, None]]), r"joint_pos\[1\] .*shape"),
+        (lambda t, q: (t, q[:1]), r"joint_pos .*2"),
+    ],
+)
+def test_fit_names_the_bad_argument(change, message):
+    times, ys = _sine_demos(n=2)
+    t, q = change(times, [y[:, None] for y in ys])
+    with pytest.raises(ValueError, match=message):
+        DemonstrationEncoder(model="empirical").fit(t, q)
+
+
+def test_fit_names_bad_frames_ee_pos_and_landmarks():
+    times, joints, ees, frames = synthetic_demos(n=2)
+    fit = DemonstrationEncoder(model="empirical").fit
+    bad_ee = [ees[0], np.r_[ees[1][:-1], [[np.nan] * 3]]]
+    with pytest.raises(ValueError, match=r"ee_pos\[1\] .*NaN"):
+        fit(times, joints, bad_ee, frames)
+    with pytest.raises(ValueError, match=r"ee_pos\[0\] .*rows.*times\[0\]"):
+        fit(times, joints, [ees[0][:-1], ees[1]], frames)
+    with pytest.raises(ValueError, match=r"ee_pos .*frames"):
+        fit(times, joints, None, frames)
+    with pytest.raises(ValueError, match=r"frames\[1\]\['cup'\] .*pair"):
+        fit(times, joints, ees, [frames[0], {"cup": frames[1]["cup"][0]}])
+    with pytest.raises(ValueError, match=r"frames\[1\]\['cup'\]: origin .*finite"):
+        fit(times, joints, ees, [frames[0], {"cup": (np.full(3, np.nan), np.eye(3))}])
+    with pytest.raises(ValueError, match=r"frames\[0\] .*'joint'.*reserved"):
+        fit(times, joints, ees, [{**f, "joint": f["cup"]} for f in frames])
+    mid = [t[len(t) // 2] for t in times]
+    with pytest.raises(ValueError, match=r"landmarks\[1\] .*NaN"):
+        fit(times, joints, ees, frames, landmarks=[[mid[0]], [np.nan]])
+    with pytest.raises(ValueError, match=r"landmarks\[1\] .*inside"):
+        fit(times, joints, ees, frames, landmarks=[[mid[0]], [times[1][-1] + 1.0]])
+    with pytest.raises(ValueError, match=r"landmarks\[1\] .*1 .*landmarks\[0\] .*2"):
+        fit(times, joints, ees, frames, landmarks=[[mid[0], mid[0] + 0.1], [mid[1]]])
+
+
+def test_predict_names_the_bad_argument():
+    times, ys = _sine_demos(n=2)
+    enc = DemonstrationEncoder(n_steps=20, model="empirical").fit(times, [y[:, None] for y in ys])
+    with pytest.raises(ValueError, match=r"phase .*NaN"):
+        enc.predict([0.1, np.nan])
+    with pytest.raises(ValueError, match=r"phase .*numbers"):
+        enc.predict(["x"])
+    with pytest.raises(ValueError, match=r"phase .*1-D"):
+        enc.predict(np.zeros((3, 2)))
+    with pytest.raises(ValueError, match=r"frame must be one of \['joint'\], got 'cup'"):
+        enc.predict([0.5], "cup")
+    with pytest.raises(KeyError):  # still a KeyError for callers that catch one
+        enc.predict([0.5], "cup")
