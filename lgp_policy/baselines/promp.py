@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 
-from lgp_policy.lfd.encoding import MIN_STD
 from lgp_policy.lfd.policy import GPDemonstrationPolicy
 
 __all__ = ["ProMPPolicy"]
@@ -101,7 +100,7 @@ class ProMPPolicy(GPDemonstrationPolicy):
             mean = promp.mean_trajectory(self.phase_grid_)
             var = promp.var_trajectory(self.phase_grid_) + float(promp.variance)
             self.mean_[name] = np.asarray(mean, dtype=float)
-            self.std_[name] = np.maximum(np.sqrt(var), MIN_STD)
+            self.std_[name] = np.maximum(np.sqrt(var), encoder.std_floor_[name])
             self.promps_[name] = promp
             if progress:
                 print(f"  ProMP for frame {name!r}: {n_dims} dims, {n_demos} demos", flush=True)

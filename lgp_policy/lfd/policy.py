@@ -76,7 +76,6 @@ from lgp_policy.gp.local import COMBINE_RULES, DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import Trajectory, TrajectorySet
 from lgp_policy.lfd.encoding import (
     JOINT_FRAME,
-    MIN_STD,
     DemonstrationEncoder,
     intervals_report,
     new_demonstration_scale,
@@ -799,7 +798,9 @@ class GPDemonstrationPolicy:
             std = (
                 self.std_[JOINT_FRAME][:, :k]
                 if tied is None
-                else np.maximum(tied * math.sqrt(1.0 + 1.0 / n_c), MIN_STD)
+                else np.maximum(
+                    tied * math.sqrt(1.0 + 1.0 / n_c), encoder.std_floor_[JOINT_FRAME][:k]
+                )
             )
             # the gripper (and any other column after the state) from all demonstrations
             self.posture_mean_.append(np.hstack([mean, self.mean_[JOINT_FRAME][:, k:]]))
