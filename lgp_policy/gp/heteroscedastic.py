@@ -209,6 +209,70 @@ def _signal_length_scale(kernel: Kernel) -> float:
     return float(min(ls)) if ls else 1.0
 
 
+RESCUE_LENGTH_SCALES = (1.0 / 3.0, 1.0 / 10.0)
+"""Starts of the searches that re-learn a collapsed step 1 (:func:`_rescue_collapsed_search`):
+signal length scales as fractions of the inputs' extent per feature."""
+
+
+def _collapsed(kernel: Kernel) -> bool:
+    """Whether a squared-exponential length scale of ``kernel`` sits at its lower bound."""
+    for leaf in kernel.leaves():
+        if isinstance(leaf, SquaredExponential):
+            low = float(leaf.length_scale_bounds[0])
+            if np.any(np.asarray(leaf.length_scale) <= low * (1.0 + 1e-6)):
+                return True
+    return False
+
+
+def _rescue_collapsed_search(gps: list[GaussianProcess], kernel: Kernel, learn_all) -> None:
+    """Re-learn step 1 of the EM where its search ended at a collapsed length scale.
+
+    From the neutral start (length scale 1 on standardised targets) a single outlier makes the
+    gradient of the homoscedastic likelihood point steeply towards short length scales; the
+    first L-BFGS-B step can then reach the length scale's lower bound, where a squared
+    exponential is white noise on any inputs further apart than the bound, its gradient in the
+    length scale vanishes, and the search stops. That point has the likelihood of a model
+    without signal (``-n/2 log(2 pi e)`` on standardised targets), usually far below the
+    smooth fit; every later EM step starts from it, and ``LocalGP`` hands it to all its local
+    models (the signal dropped, predictions at the mean).
+
+    Here, and only here (a search that did not end on the lower bound is left alone, bit for
+    bit), the same search runs again from :data:`RESCUE_LENGTH_SCALES` times the inputs'
+    extent, and the result with the highest likelihood (the objective of step 1) is kept:
+    the collapsed one where it is really the best.
+    """
+    if not _collapsed(gps[0].kernel_):
+        return
+    X_all = np.concatenate([gp._data.X for gp in gps])
+    span = np.ptp(X_all, axis=0)
+    span = np.where(span > 0, span, 1.0)
+    y_var = float(np.mean([np.var(gp.y_train_) for gp in gps]))
+    candidates = []
+    for frac in RESCUE_LENGTH_SCALES:
+        k = kernel.clone()
+        for leaf in k.leaves():
+            if leaf.is_noise:
+                low, high = (float(b) for b in leaf.noise_level_bounds)  # type: ignore[attr-defined]
+                leaf.noise_level = float(np.clip(0.5 * y_var, low, high))  # type: ignore[attr-defined]
+            elif isinstance(leaf, SquaredExponential):
+                low, high = (float(b) for b in leaf.variance_bounds)
+                leaf.variance = float(np.clip(0.5 * y_var, low, high))
+                low, high = (float(b) for b in leaf.length_scale_bounds)
+                ls = np.clip(frac * span, low, high)
+                leaf.length_scale = ls if leaf.anisotropic else float(np.min(ls))
+        candidates.append([gp._derive(k) for gp in gps])
+    learn_all(candidates)
+    best = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
+    best_theta = None
+    for cand in candidates:
+        value = float(sum(gp.log_marginal_likelihood_value_ for gp in cand))
+        if value > best:
+            best, best_theta = value, cand[0].kernel_.theta
+    if best_theta is not None:
+        for gp in gps:
+            gp._set_theta(best_theta)
+
+
 @dataclass
 class EMResult:
     """Output of :func:`most_likely_em`: one entry per data set in the lists.
@@ -351,6 +415,8 @@ def most_likely_em_many(
     if learn:
         step1 = [[make(kernel)._prepare(X, y) for X, y in datasets] for datasets in problems]
         learn_all(step1)
+        for gps in step1:
+            _rescue_collapsed_search(gps, kernel, learn_all)
     else:
         step1 = [[make(kernel).fit(X, y) for X, y in datasets] for datasets in problems]
     runs = [
