@@ -20,6 +20,7 @@ import argparse
 import io
 import json
 import math
+import sys
 import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -485,6 +486,7 @@ def run_finetune(args: argparse.Namespace) -> int:
     for seed in args.seeds:
         check_output_folder("--out", out / f"seed{seed}", force=args.force, owned=())
     base_path = Path(args.policy)
+    import gym_coffee
     from lgp_policy.lfd.policy import MAX_FILE_BYTES, GPDemonstrationPolicy
 
     size = base_path.stat().st_size
@@ -497,9 +499,20 @@ def run_finetune(args: argparse.Namespace) -> int:
     named = io.BytesIO(base_bytes)
     named.name = str(base_path)  # the errors name the file, not "<in-memory file>"
     try:
-        GPDemonstrationPolicy.load(named)
+        recorded = GPDemonstrationPolicy.load(named).demonstrations_env_
     except ValueError as exc:
         raise UsageError(f"argument POLICY: {exc}") from exc
+    if recorded is not None and (
+        recorded["env_id"] != gym_coffee.ENV_ID
+        or recorded["env_kwargs"].get("physics", "default") != "default"
+    ):  # finetuning runs on the easy level with the default physics
+        print(
+            f"note: the policy was fitted on demonstrations of {recorded['env_id']} "
+            f"({recorded['env_kwargs'].get('physics', 'default')} physics); finetune trains "
+            f"and evaluates on {gym_coffee.ENV_ID} with the default physics",
+            file=sys.stderr,
+            flush=True,
+        )
     settings = {
         "algo": args.algo,
         "timesteps": args.timesteps,

@@ -76,6 +76,28 @@ def test_checks_before_work(tmp_path, gp_policy, capsys):
     assert (out / "seed3" / "residual_policy.npz").read_bytes() == b"old"
 
 
+def test_notes_when_the_policys_demonstrations_are_of_another_env(
+    tmp_path, gp_policy, capsys, monkeypatch
+):
+    """finetune trains on the easy level; a policy of hard-level demonstrations gets a note."""
+    import gym_coffee
+    from lgp_policy.app import finetune_cli
+
+    monkeypatch.setattr(finetune_cli, "run_jobs", lambda jobs, out, **kw: {})  # no training
+    assert main(["finetune", str(gp_policy), "--out", str(tmp_path / "a")]) == 0
+    assert "note" not in capsys.readouterr().err
+    with np.load(gp_policy, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(str(arrays["metadata"]))
+    meta["demonstrations_env"] = {"env_id": gym_coffee.LEVELS["hard"], "env_kwargs": {}}
+    arrays["metadata"] = np.array(json.dumps(meta))
+    hard = tmp_path / "hard.npz"
+    np.savez(hard, **arrays)
+    assert main(["finetune", str(hard), "--out", str(tmp_path / "b")]) == 0
+    err = capsys.readouterr().err
+    assert f"note: the policy was fitted on demonstrations of {gym_coffee.LEVELS['hard']}" in err
+
+
 TINY = ["--timesteps", "40", "--eval-episodes", "1", "--eval-freq", "0", "--checkpoint-freq", "0"]
 
 
