@@ -218,9 +218,10 @@ def env_id_from_args(args: argparse.Namespace) -> str:
     return gym_coffee.ENV_ID if env_id is None else check_env_id(env_id)
 
 
-def env_kwargs_from_args(args: argparse.Namespace) -> dict[str, Any]:
-    """The env keywords chosen with :func:`add_env_options` (``{}`` for the default physics)."""
-    physics = getattr(args, "physics", None) or "default"
+def env_kwargs_from_args(args: argparse.Namespace, default: str = "default") -> dict[str, Any]:
+    """The env keywords chosen with :func:`add_env_options` (``{}`` for the default physics);
+    ``default``: the physics preset when ``--physics`` is not given."""
+    physics = getattr(args, "physics", None) or default
     return {} if physics == "default" else {"physics": physics}
 
 

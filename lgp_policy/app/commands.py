@@ -231,9 +231,7 @@ def evaluation_env(
     physics = recorded["env_kwargs"].get("physics") or "default"
     if physics not in gym_coffee.PHYSICS_PRESETS:  # not one this version has: the task's own
         physics = "default"
-    if args.physics is None:
-        args = argparse.Namespace(**{**vars(args), "physics": physics})
-    env_kwargs = env_kwargs_from_args(args)
+    env_kwargs = env_kwargs_from_args(args, default=physics)
     theirs = env_text(recorded["env_id"], {} if physics == "default" else {"physics": physics})
     note = f"the policy was fitted on demonstrations of {theirs}"
     return env_id, env_kwargs, "" if theirs == env_text(env_id, env_kwargs) else note
