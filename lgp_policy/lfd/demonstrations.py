@@ -37,10 +37,61 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-__all__ = ["FrameLike", "Trajectory", "TrajectorySet", "as_rotation_matrices"]
+__all__ = [
+    "FrameLike",
+    "Trajectory",
+    "TrajectorySet",
+    "as_rotation_matrices",
+    "check_finite",
+    "check_time_stamps",
+    "real_array",
+]
 
 FrameLike = tuple[ArrayLike, ArrayLike | Rotation]
 """A frame as given: ``(position, rotation)``, per step or constant."""
+
+
+def real_array(value: Any, where: str) -> NDArray[np.float64]:
+    """``value`` as a float array, or a ValueError naming ``where``."""
+    try:
+        raw = np.asarray(value)
+        if raw.dtype.kind not in "biuf":
+            raise TypeError(f"dtype {raw.dtype}")
+        return np.asarray(raw, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where} must be an array of real numbers ({exc})") from None
+
+
+def check_finite(a: NDArray[np.float64], where: str) -> None:
+    bad = ~np.isfinite(a)
+    if bad.any():
+        at = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{where} contains NaN or infinity (first at index {at[0] if len(at) == 1 else at})"
+        )
+
+
+def check_time_stamps(value: Any, where: str) -> NDArray[np.float64]:
+    """One demonstration's time stamps: 1-D, at least 2, finite, strictly increasing; a
+    ValueError names ``where`` (e.g. ``times[2]``) and the offending stamps."""
+    t = real_array(value, where)
+    if t.ndim != 1:
+        raise ValueError(f"{where} must be 1-D, (n,) time stamps, got shape {t.shape}")
+    if t.size < 2:
+        raise ValueError(f"{where} needs at least 2 time stamps, got {t.size}")
+    check_finite(t, where)
+    step = np.diff(t)
+    if np.any(step <= 0):
+        k = int(np.argmax(step <= 0))
+        raise ValueError(
+            f"{where} must be strictly increasing, but {where}[{k + 1}] = {float(t[k + 1])!r} "
+            f"follows {where}[{k}] = {float(t[k])!r}"
+        )
+    if not np.isfinite(t[-1] - t[0]):
+        raise ValueError(
+            f"{where} spans {float(t[0])!r} to {float(t[-1])!r}: its duration is not finite"
+        )
+    return t
 
 
 def as_rotation_matrices(rotation: ArrayLike | Rotation, n: int, d: int, name: str) -> NDArray:
@@ -91,11 +142,7 @@ class Trajectory:
     success: bool = True
 
     def __post_init__(self) -> None:
-        t = np.asarray(self.time, dtype=float)
-        if t.ndim != 1 or t.size < 2:
-            raise ValueError(f"time must be (n,) with n >= 2, got shape {t.shape}")
-        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-            raise ValueError("time must be finite and strictly increasing")
+        t = check_time_stamps(self.time, "time")
         n = t.size
         self.time = t
         self.state = _steps("state", self.state, n)

@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from lgp_policy.gp.heteroscedastic import _data_scale
 from lgp_policy.gp.local import DEFAULT_COMBINE
+from lgp_policy.lfd.demonstrations import check_finite, check_time_stamps, real_array
 
 __all__ = [
     "JOINT_FRAME",
@@ -214,54 +215,11 @@ def _entries(value: Any, name: str, n: int | None = None) -> list[Any]:
     return out
 
 
-def _real_array(value: Any, where: str) -> NDArray[np.float64]:
-    """``value`` as a float array, or a ValueError naming ``where``."""
-    try:
-        raw = np.asarray(value)
-        if raw.dtype.kind not in "biuf":
-            raise TypeError(f"dtype {raw.dtype}")
-        return np.asarray(raw, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{where} must be an array of real numbers ({exc})") from None
-
-
-def _check_finite(a: NDArray[np.float64], where: str) -> None:
-    bad = ~np.isfinite(a)
-    if bad.any():
-        at = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(
-            f"{where} contains NaN or infinity (first at index {at[0] if len(at) == 1 else at})"
-        )
-
-
-def _check_times(value: Any, i: int) -> NDArray[np.float64]:
-    """``times[i]``: 1-D, at least 2 finite, strictly increasing time stamps."""
-    where = f"times[{i}]"
-    t = _real_array(value, where)
-    if t.ndim != 1:
-        raise ValueError(f"{where} must be 1-D, (n_i,) time stamps, got shape {t.shape}")
-    if t.size < 2:
-        raise ValueError(f"{where} needs at least 2 time stamps, got {t.size}")
-    _check_finite(t, where)
-    step = np.diff(t)
-    if np.any(step <= 0):
-        k = int(np.argmax(step <= 0))
-        raise ValueError(
-            f"{where} must be strictly increasing, but {where}[{k + 1}] = {float(t[k + 1])!r} "
-            f"follows {where}[{k}] = {float(t[k])!r}"
-        )
-    if not np.isfinite(t[-1] - t[0]):
-        raise ValueError(
-            f"{where} spans {float(t[0])!r} to {float(t[-1])!r}: its duration is not finite"
-        )
-    return t
-
-
 def _check_samples(
     value: Any, where: str, t: NDArray[np.float64], i: int, *, allow_1d: bool
 ) -> NDArray[np.float64]:
     """``(n_i, d)`` finite samples (``(n_i,)`` as one column if ``allow_1d``), one per time."""
-    a = _real_array(value, where)
+    a = real_array(value, where)
     if a.ndim == 1 and allow_1d:
         a = a[:, None]
     if a.ndim != 2:
@@ -274,7 +232,7 @@ def _check_samples(
         )
     if a.shape[1] == 0:
         raise ValueError(f"{where} has no columns: need at least one dimension")
-    _check_finite(a, where)
+    check_finite(a, where)
     return a
 
 
@@ -314,8 +272,8 @@ def _check_frames(value: Any, n: int, ee_pos: Any) -> tuple[list[str], list[Mapp
                     f"{type(pose).__name__}"
                     + (f" of length {len(pose)}" if hasattr(pose, "__len__") else "")
                 )
-            _real_array(pose[0], f"frames[{i}][{name!r}]: origin")
-            _real_array(pose[1], f"frames[{i}][{name!r}]: rotation")
+            real_array(pose[0], f"frames[{i}][{name!r}]: origin")
+            real_array(pose[1], f"frames[{i}][{name!r}]: rotation")
     return names, frames
 
 
@@ -325,11 +283,11 @@ def _check_landmarks(value: Any, ts: list[NDArray[np.float64]]) -> list[NDArray[
     marks: list[NDArray[np.float64]] = []
     for i, m in enumerate(_entries(value, "landmarks", len(ts))):
         where = f"landmarks[{i}]"
-        a = _real_array(m, where)
+        a = real_array(m, where)
         if a.ndim > 1:
             raise ValueError(f"{where} must be 1-D, (k,) event times, got shape {a.shape}")
         a = a.reshape(-1)
-        _check_finite(a, where)
+        check_finite(a, where)
         if i and a.size != marks[0].size:
             raise ValueError(
                 f"{where} has {a.size} events but landmarks[0] has {marks[0].size}: every "
@@ -522,7 +480,7 @@ class DemonstrationEncoder:
         if progress is not None and not callable(progress):
             raise ValueError(f"progress must be callable or None, got {type(progress).__name__}")
         # every argument is checked before any work
-        ts = [_check_times(t, i) for i, t in enumerate(_entries(times, "times"))]
+        ts = [check_time_stamps(t, f"times[{i}]") for i, t in enumerate(_entries(times, "times"))]
         n = len(ts)
         if n == 0:
             raise ValueError("times must hold at least one demonstration, got none")
@@ -629,10 +587,10 @@ class DemonstrationEncoder:
         self._check_fitted()
         if not isinstance(frame, str) or frame not in self.models_:
             raise _UnknownFrameError(f"frame must be one of {self.frame_names_}, got {frame!r}")
-        s = _real_array(phase, "phase")
+        s = real_array(phase, "phase")
         if s.ndim > 1:
             raise ValueError(f"phase must be 1-D, (n,) phases, got shape {s.shape}")
-        _check_finite(s.reshape(-1), "phase")
+        check_finite(s.reshape(-1), "phase")
         X = s.reshape(-1, 1)
         means, stds = [], []
         for m in self.models_[frame]:
