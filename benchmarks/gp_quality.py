@@ -10,6 +10,12 @@ held-out one at its own time stamps):
 * ``shapes-<grid>``: synthetic 2-D shapes whose demonstrations share their start and end
   points exactly (zero spread there), ``grid`` ``shared`` (one time grid, replicated inputs) or
   ``own`` (each demonstration on its own time stamps, distinct inputs).
+* ``lasa/<shape>`` (with ``--lasa DIR``): real human demonstrations, the LASA Handwriting
+  Dataset (Khansari-Zadeh & Billard 2011): 30 shapes drawn on a tablet, 7 demonstrations of
+  1000 samples each (2-D positions in mm, each on its own time stamps), every demonstration
+  ending at exactly (0, 0). Read from the dataset's ``.mat`` files in ``DIR`` (its
+  ``DataSet`` folder; nothing is downloaded) and resampled on normalised time as
+  ``DemonstrationEncoder.fit`` does (``resample``). Summarised in a table of their own.
 
 Methods: ``local-<rule>`` (``LocalGP`` as the encoder builds it,
 ``DemonstrationEncoder._make_model``, with each combination rule), ``exact`` (the homoscedastic
@@ -46,6 +52,7 @@ Usage::
 
     python benchmarks/gp_quality.py --quick    # a few output dimensions, 1 seed (~1-2 min)
     python benchmarks/gp_quality.py            # every dimension, 3 seeds
+    python benchmarks/gp_quality.py --part loo --lasa LASAHandwritingDataset/DataSet
 """
 
 from __future__ import annotations
@@ -93,6 +100,35 @@ def coffee_sets(n_steps: int, max_dims: int | None) -> dict[str, np.ndarray]:
     policy = GPDemonstrationPolicy(model="empirical", n_steps=n_steps).fit(demos)
     data = policy.encoder_.data_
     return {f"coffee/{k}": v[:, :, :max_dims] for k, v in data.items()}
+
+
+def lasa_sets(folder: Path, n_steps: int, quick: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{"lasa/<shape>": (T, Y)}`` from the LASA Handwriting Dataset's ``.mat`` files in
+    ``folder``: each of a shape's demonstrations (``demos{i}.pos``, 2 x 1000 mm, on its own
+    ``demos{i}.t``) resampled to ``n_steps`` points on normalised time (``resample``), ``T``
+    the shared phase grid. ``quick``: every third shape."""
+    from scipy.io import loadmat
+
+    from lgp_policy.lfd.encoding import resample
+
+    files = sorted(Path(folder).glob("*.mat"))
+    if not files:
+        raise SystemExit(
+            f"--lasa: no .mat files in {folder} (expected the dataset's DataSet folder)"
+        )
+    if quick:
+        files = files[::3]
+    sets = {}
+    for path in files:
+        demos = loadmat(path, simplify_cells=True)["demos"]
+        Y = np.stack(
+            [
+                resample(np.asarray(d["t"], float), np.asarray(d["pos"], float).T, n_steps)
+                for d in demos
+            ]
+        )
+        sets[f"lasa/{path.stem}"] = (np.tile(np.linspace(0.0, 1.0, n_steps), (len(Y), 1)), Y)
+    return sets
 
 
 def _time_grid(grid: str, n_steps: int, rng: np.random.Generator) -> np.ndarray:
@@ -379,6 +415,14 @@ def main(argv: list[str] | None = None) -> None:
         "study on generated smoothly deviating demonstrations (not part of 'all')",
     )
     parser.add_argument("--coverage-sets", type=int, default=12, help="sets per coverage row")
+    parser.add_argument(
+        "--lasa",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="also leave-one-out on the LASA Handwriting Dataset's .mat files in DIR (real "
+        "human demonstrations; its DataSet folder)",
+    )
     args = parser.parse_args(argv)
     if args.part == "coverage":
         print(f"## Coverage over {args.coverage_sets} generated sets per row (LocalGP)\n")
@@ -400,6 +444,8 @@ def main(argv: list[str] | None = None) -> None:
         sets[name] = (T, Y)
     for grid in ("shared", "own"):
         sets[f"shapes-{grid}"] = shapes(grid, n_steps=args.n_steps)
+    if args.lasa is not None:
+        sets.update(lasa_sets(args.lasa, args.n_steps, args.quick))
     print(f"## Leave-one-demonstration-out (n_steps={args.n_steps}, ProMP {N_WEIGHTS} weights)\n")
     print("| set | method | RMSE | NLPD | 95% cov. | max step ratio | CPU s | bad folds |")
     print("|---|---|---|---|---|---|---|---|")
@@ -413,21 +459,34 @@ def main(argv: list[str] | None = None) -> None:
                 f"{r['cov']:.3f} | {r['step']:.2f} | {r['cpu']:.2f} | {r['bad']}/{r['folds']} |",
                 flush=True,
             )
+    groups = {"teacher and synthetic sets": [n for n in sets if not n.startswith("lasa/")]}
+    if args.lasa is not None:
+        groups["LASA, real human demonstrations"] = [n for n in sets if n.startswith("lasa/")]
+    names = list(sets)
+    for title, members in groups.items():
+        print(f"\n{title} ({len(members)} sets)")
+        print_summary({m: [rs[names.index(n)] for n in members] for m, rs in summary.items()})
+
+
+def print_summary(summary: dict[str, list[dict[str, float]]]) -> None:
+    """Per method: means over the sets, the worst step ratio, the bad folds, the range of the
+    per-set coverage, and the RMSE ratio / NLPD difference to the ProMP on the same sets."""
     print(
-        "\n| method | mean RMSE | mean NLPD | mean cov. | worst step | bad folds | "
+        "\n| method | mean RMSE | mean NLPD | mean cov. | cov. per set | worst step | bad folds | "
         "RMSE / ProMP | NLPD - ProMP |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     ref = summary["promp"]
     for m, rs in summary.items():
         rm = np.mean([r["rmse"] for r in rs])
         nl = np.mean([r["nlpd"] for r in rs])
+        covs = [r["cov"] for r in rs]
         ratio = np.mean([r["rmse"] / p["rmse"] for r, p in zip(rs, ref, strict=True)])
         dn = np.mean([r["nlpd"] - p["nlpd"] for r, p in zip(rs, ref, strict=True)])
         print(
-            f"| {m} | {rm:.3f} | {nl:.2f} | {np.mean([r['cov'] for r in rs]):.3f} | "
-            f"{max(r['step'] for r in rs):.2f} | {sum(r['bad'] for r in rs)} | "
-            f"{ratio:.2f} | {dn:+.2f} |"
+            f"| {m} | {rm:.3f} | {nl:.2f} | {np.mean(covs):.3f} | "
+            f"{min(covs):.3f} - {max(covs):.3f} | {max(r['step'] for r in rs):.2f} | "
+            f"{sum(r['bad'] for r in rs)} | {ratio:.2f} | {dn:+.2f} |"
         )
 
 
