@@ -45,12 +45,23 @@ that behaviour for comparison). Rules:
   model it does not reduce to that model (``beta != 1``), and its latent variance is smaller than
   the best model's where ``beta > 1``;
 * ``"nearest"`` (default, the calibrated rule): moment-matched mixture of the ``n_neighbors``
-  models with the highest ``w(x)``, weights ``pi_l ~ w_l(x) / v_l(x)``; with one model it is that
+  models with the highest ``w(x)``, weights ``pi_l ~ (w_l(x) - w_next(x)) / v_l(x)``, ``w_next``
+  the highest ``w`` of the models left out (``_taper``): a model's weight reaches 0 where it
+  leaves the selection, so mean and variance are continuous in ``x``; with one model it is that
   model; its cost does not grow with the number of models.
 
 The noise is ``r(x) = sum_l rho_l(x) r_l(x)``: the noise function of the model whose training
-inputs surround ``x``, blended with its neighbour over about one input spacing between two windows
-(``LocalGP._noise_weights``).
+inputs surround ``x``, blended with its neighbours over ``NOISE_BLEND`` (a tenth) of a window's
+width beyond its training inputs, each evaluated at the nearest point of its own window
+(``LocalGP._noise_weights``). Neighbouring noise functions are estimated from different data
+and can disagree at their common edge (on the LASA handwriting set by up to half the data's
+range); the blend spreads that over a tenth of a window instead of one input spacing.
+
+Length-scale floor. With the default kernel, the shared search cannot take the squared
+exponential's length scale below the median spacing of the inputs that learn it (thinned
+subsets): shorter, it is white noise on those inputs, which cannot identify it, while on the
+denser full data it interpolates single points (``_floor_length_scale``). An explicit kernel's
+bounds are used as given.
 
 Input units (``input_scale``). Everything above runs on ``X / input_scale_`` (one divisor per
 feature): the kernel's starting values and bounds, and with them Algorithm 1's radius, are read in
@@ -117,6 +128,10 @@ models."""
 
 #: Test points farther than this many length scales from a model's data skip that model.
 SKIP_DISTANCE = 9.0
+
+#: The local noise functions are blended over this fraction of a model's window (per feature,
+#: at least one input spacing) beyond its training inputs (``LocalGP._noise_weights``).
+NOISE_BLEND = 0.1
 
 #: ``input_scale="auto"`` rescales a feature by powers of this base (an SI prefix step).
 INPUT_SCALE_BASE = 1000.0
@@ -542,7 +557,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         learned = None
         if plan["shared"]:
             learned = fit_noise_model(
-                plan["subsets"], kernel, self.noise_kernel, method=self.method, **plan["em"]
+                plan["subsets"], plan["kernel"], self.noise_kernel, method=self.method, **plan["em"]
             )
         return self._em_models(plan, learned)
 
@@ -568,6 +583,8 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             # the data (sum of the subsets' LMLs), then run every model's EM with them fixed.
             subsets, plan["complete"] = self._shared_data(X, index_sets)
             plan["subsets"] = [(X[i], yn[i]) for i in subsets]
+            if self.kernel is None:
+                plan["kernel"] = _floor_length_scale(kernel, [X[i] for i in subsets])
         return plan
 
     def _em_models(self, plan: dict[str, Any], learned: Any) -> list[HeteroscedasticGP]:
@@ -644,6 +661,8 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             u = np.unique(X[:, j])
             spacing.append(np.ptp(u) / (u.size - 1) if u.size > 1 else 1.0)
         self._spacing = np.asarray(spacing)  # mean spacing of distinct inputs, per feature
+        width = self._boxes[:, 1] - self._boxes[:, 0]  # (L, d)
+        self._blend = np.maximum(self._spacing[None, :], NOISE_BLEND * width)
         self._skip_scale = []
         for model in self.models_:
             k = _latent_model(model).kernel_
@@ -655,18 +674,23 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
     def _noise_weights(self, X: NDArray[np.float64], relevant: NDArray[np.bool_]):
         """(L, n) weights of the local noise functions ``r_l`` in ``r(x)``.
 
-        ``rho_l ~ exp(-|g_l(x) / h|^2 / 2)`` over the ``relevant`` models, ``g_l`` the distance
-        from ``x`` to the bounding box of model ``l``'s training inputs (0 inside) and ``h`` the
-        mean spacing of the distinct training inputs per feature: the noise is that of the model
-        whose data lie at ``x``, blended with a neighbour over about one input spacing between
-        two windows (and averaged where boxes overlap). A noise function is an estimate from the
-        model's own data; outside its window it only extrapolates. Weighting by how much a model
+        ``rho_l ~ exp(-|g_l(x) / h_l|^2 / 2)`` over the ``relevant`` models, ``g_l`` the distance
+        from ``x`` to the bounding box of model ``l``'s training inputs (0 inside) and ``h_l``
+        per feature ``NOISE_BLEND`` times the box's width, at least the mean spacing of the
+        distinct training inputs: the noise is that of the model whose data lie at ``x``, blended
+        with a neighbour over a tenth of a window between two windows (and averaged where boxes
+        overlap). With ``h_l`` one input spacing (before), dense distinct inputs (the LASA
+        handwriting set: 6000 time stamps, 15 models) switched between neighbouring noise
+        functions within one sample, and the std stepped by up to 240x the demonstrations'
+        largest step (median over the 30 shapes 21x; 1.7x now). A noise function is an estimate
+        from the model's own data; outside its window it only extrapolates (so each is evaluated
+        at the nearest point of its window). Weighting by how much a model
         knows about ``f(x)`` (its precision gain) mixed in those extrapolations wherever the
         signal length scale exceeded a window: on demonstrations that split fast the std was
         0.3x the demonstrations' spread and jumped at the model boundaries.
         """
         lo, hi = self._boxes[:, 0][:, None, :], self._boxes[:, 1][:, None, :]  # (L, 1, d)
-        gap = np.maximum(np.maximum(lo - X[None], X[None] - hi), 0.0) / self._spacing
+        gap = np.maximum(np.maximum(lo - X[None], X[None] - hi), 0.0) / self._blend[:, None, :]
         logrho = np.where(relevant, -0.5 * np.sum(gap**2, axis=2), -np.inf)
         return _normalized_exp(logrho)
 
@@ -724,8 +748,9 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
                 mu[l, near] = m
                 var[l, near] = v[:, None]
             need = noisy[l]
-            if np.any(need):
-                noise[l, need] = _noise_normalized(model, X[need])[:, None]
+            if np.any(need):  # at the nearest point of its window: no extrapolated noise
+                Xn = np.clip(X[need], self._boxes[l, 0], self._boxes[l, 1])
+                noise[l, need] = _noise_normalized(model, Xn)[:, None]
         return mu, np.maximum(var, 1e-12), noise, prior
 
     def _combine(self, X: NDArray[np.float64]):
@@ -755,7 +780,9 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             mean = np.sum(beta * mu / var, axis=0) / prec
             v = 1.0 / prec
         else:  # "nearest": moment-matched mixture of the n_neighbors models, weights w_l / v_l
-            logpi = np.where(relevant[:, :, None], logw - np.log(var), -np.inf)
+            logpi = np.where(
+                relevant[:, :, None], _taper(logw_nl.T, relevant) - np.log(var), -np.inf
+            )
             pi = _normalized_exp(logpi)
             mean = np.sum(pi * mu, axis=0)
             v = np.maximum(np.sum(pi * (var + mu**2), axis=0) - mean**2, 1e-12)
@@ -801,6 +828,51 @@ def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
     for e, plan, result in zip(columns, plans, learned, strict=True):
         e.models_ = e._em_models(plan, result)
         e._prepare_prediction()
+
+
+def _floor_length_scale(kernel: Kernel, inputs: list[NDArray[np.float64]]) -> Kernel:
+    """A copy of ``kernel`` whose squared-exponential length scales cannot go below the inputs'
+    spacing (the median over ``inputs`` of the median gap between consecutive distinct values,
+    the smallest over the features): a shorter length scale is white noise on the inputs that
+    learn it, so they cannot identify it, and on denser inputs it interpolates every point
+    (measured on the LASA handwriting set Multi_Models_1: a shared search on thinned subsets
+    stopped at 1.1e-4 s against their 2.6e-3 s spacing, and the mean stepped 119x further than
+    any demonstration between two samples)."""
+    gaps = []
+    for Xs in inputs:
+        for j in range(Xs.shape[1]):
+            u = np.unique(Xs[:, j])
+            if u.size > 1:
+                gaps.append(float(np.median(np.diff(u))))
+    if not gaps:
+        return kernel
+    floor = float(np.median(gaps))
+    out = kernel.clone()
+    for leaf in out.leaves():
+        if isinstance(leaf, SquaredExponential):
+            low, high = (float(b) for b in leaf.length_scale_bounds)
+            low = min(max(low, floor), high)
+            leaf.length_scale_bounds = (low, high)
+            leaf.length_scale = np.clip(leaf.length_scale, low, high)
+    return out
+
+
+def _taper(logw: NDArray[np.float64], relevant: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """(L, n, 1) log weights of the ``n_neighbors`` selected models that go to 0 continuously as
+    a model leaves the selection: ``log(w_l - w_next)``, ``w_next`` the largest weight of the
+    models not selected (none: ``w_l`` itself). Every model's mixture weight is then continuous
+    in ``x``, so the combined mean and variance are too."""
+    out = np.where(relevant, logw, -np.inf)
+    if np.all(relevant):
+        return out[:, :, None]
+    rest = np.max(np.where(relevant, -np.inf, logw), axis=0, keepdims=True)  # (1, n)
+    top = np.max(out, axis=0, keepdims=True)
+    g = np.exp(out - top) - np.exp(rest - top)  # relative to the best: nothing overflows
+    with np.errstate(divide="ignore"):
+        logg = np.where(relevant & (g > 0.0), np.log(np.where(g > 0.0, g, 1.0)) + top, -np.inf)
+    # exact ties with the best unselected model (equidistant centres): its plain weights
+    tie = ~np.any(np.isfinite(logg), axis=0, keepdims=True)
+    return np.where(tie, out, logg)[:, :, None]
 
 
 def _normalized_exp(logw: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -316,6 +316,86 @@ def test_noise_model_does_not_overshoot_a_fast_split():
     assert np.max(np.abs(np.diff(std_fine))) <= 2.0 * spread_step
 
 
+def _handwriting(seed: int = 0, n_demos: int = 6, n: int = 600):
+    """Demonstrations drawn like the LASA handwriting set: each with its own duration and its own
+    time stamps (distinct inputs), from scattered starts to exactly 0 at the end."""
+    rng = np.random.default_rng(seed)
+    T, Y = [], []
+    for _ in range(n_demos):
+        duration = rng.uniform(2.5, 3.5)
+        t = np.sort(np.r_[0.0, duration, rng.uniform(0.0, duration, n - 2)])
+        s = t / duration
+        a, phase = rng.normal(1.0, 0.2), rng.normal(0.0, 0.3)
+        Y.append(
+            30 * (1 - s) ** 2 * a * np.cos(2.5 * np.pi * s + phase) + 5 * (1 - s) * rng.normal()
+        )
+        T.append(t)
+    return T, Y
+
+
+def test_smooth_on_dense_distinct_inputs_with_default_settings():
+    """``LocalGP()`` as a user calls it on raw time stamps (five demonstrations of 600 samples,
+    8 local models): on a grid of 4000 points neither the mean nor the std changes faster than
+    twice the demonstrations' own largest rate. Before, the ``"nearest"`` rule dropped a model
+    from its mixture at full weight (mean steps up to 2x) and the noise functions were blended
+    over one input spacing, so the std jumped at model boundaries (up to 18x); on the LASA
+    handwriting set the same gave steps up to 100x (mean) and 240x (std)."""
+    T, Y = _handwriting()
+    for k in (0, 2, 4):
+        keep = [i for i in range(len(T)) if i != k]
+        X = np.concatenate([T[i] for i in keep])[:, None]
+        gp = LocalGP(random_state=0).fit(X, np.concatenate([Y[i] for i in keep]))
+        assert len(gp.models_) >= 4
+        fine = np.linspace(0.0, float(X.max()), 4000)
+        mean, std = gp.predict(fine[:, None], return_std=True)
+        rate = max(np.max(np.abs(np.diff(Y[i]) / np.diff(T[i]))) for i in keep)
+        step = rate * (fine[1] - fine[0])
+        assert np.max(np.abs(np.diff(mean))) <= 2.0 * step
+        assert np.max(np.abs(np.diff(std))) <= 2.0 * step
+
+
+def test_nearest_weights_vanish_before_a_model_leaves_the_mixture():
+    """The ``"nearest"`` rule's taper: a selected model's weight is ``w_l - w_next`` (the best
+    unselected model's ``w``), so it reaches 0 exactly where the model drops out; with every
+    model selected the weights are the plain ``w``."""
+    logw = np.log(np.array([[0.9, 0.6], [0.7, 0.8], [0.5, 0.5], [0.2, 0.1]]))
+    relevant = np.array([[True, True], [True, True], [False, False], [False, False]])
+    w = np.exp(local_module._taper(logw, relevant)[:, :, 0])
+    np.testing.assert_allclose(w[:, 0], [0.4, 0.2, 0.0, 0.0])
+    np.testing.assert_allclose(w[:, 1], [0.1, 0.3, 0.0, 0.0])
+    tie = np.array([[True, True], [False, False], [False, False], [False, False]])
+    even = np.log(np.array([[0.5, 0.5], [0.5, 0.5], [0.1, 0.1], [0.1, 0.1]]))
+    # a selected model tied with the best unselected one keeps its plain weight (no 0/0)
+    np.testing.assert_allclose(np.exp(local_module._taper(even, tie)[0, :, 0]), [0.5, 0.5])
+    everything = np.ones_like(relevant)
+    np.testing.assert_array_equal(local_module._taper(logw, everything)[:, :, 0], logw)
+
+
+def test_default_kernel_length_scale_stays_above_the_input_spacing():
+    """With the default kernel the shared search cannot end below the spacing of the inputs
+    that learn it (there a squared exponential is white noise on them); an explicit kernel's
+    bounds are used as given."""
+    T, Y = _handwriting(seed=1, n_demos=4, n=300)
+    X = np.concatenate(T)[:, None]
+    y = np.concatenate(Y)
+    gp = LocalGP(random_state=0).fit(X, y)
+    plan = gp._em_plan(local_module.default_kernel(), gp._X_fit, y, gp._index_sets, None)
+    subsets = [Xs for Xs, _ in plan["subsets"]]
+    floor = np.median([np.median(np.diff(np.unique(Xs[:, 0]))) for Xs in subsets])
+    se = local_module.signal_kernel(plan["kernel"])
+    assert se.length_scale_bounds[0] == pytest.approx(floor)
+    assert signal_length_scale(gp) >= floor
+    explicit = SquaredExponential(1.0, 1.0, length_scale_bounds=(1e-5, 1e5)) + WhiteNoise(0.1)
+    gp = LocalGP(explicit, random_state=0)
+    gp.fit(X, y)
+    kept = gp._em_plan(explicit, gp._X_fit, y, gp._index_sets, None)["kernel"]
+    assert local_module.signal_kernel(kept).length_scale_bounds == (1e-5, 1e5)
+
+
+def signal_length_scale(gp: LocalGP) -> float:
+    return float(local_module.signal_kernel(gp.models_[0].gp_.kernel_).length_scale)
+
+
 @pytest.mark.parametrize("complete", [True, False])
 def test_columns_fitted_in_lockstep_equal_separate_fits(complete):
     """A 2-D y fits its columns' EMs in lockstep (batched likelihoods): each column's model is
