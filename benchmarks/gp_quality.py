@@ -26,9 +26,9 @@ between demonstrations).
 
 Metrics, per held-out demonstration and output dimension, in units of that dimension's std over
 the training demonstrations: RMSE of the mean; NLPD (Gaussian, nats per point); coverage of the
-95% interval; largest step of the predicted mean between consecutive time stamps divided by the
-largest step in the training demonstrations; CPU seconds of fit + predict; and ``bad``: the
-number of folds with a non-finite, zero or > 100 x std prediction.
+95% interval; largest step of the predicted mean (and of the predicted std) between consecutive
+time stamps divided by the largest step in the training demonstrations; CPU seconds of fit +
+predict; and ``bad``: the number of folds with a non-finite, zero or > 100 x std prediction.
 
 Methods ``het-<noise model>``: one global ``HeteroscedasticGP`` per noise model (``"em"``, the
 most-likely EM, and ``"vhgp"``, the variational heteroscedastic GP), also calibrated, so that
@@ -41,6 +41,13 @@ homoscedastic minus heteroscedastic (positive: the heteroscedastic GP is better)
 gain* is what the true noise model gains over the best constant noise on the same test set
 (true ``f`` in both): the largest gain any heteroscedastic model can reach there (about 0.09
 nats on Goldberg's set, whose noise std only doubles over the input range).
+
+Part 4 (``--part lasa-raw``, with ``--lasa DIR``): ``LocalGP()`` with its default settings, as
+a user would call it, on each LASA shape's demonstrations on their own time stamps in seconds
+(all 1000 samples: 6000 distinct inputs per fold, about 15 local models), leave one
+demonstration out, per output dimension: the largest step of the predicted mean and std against
+the demonstrations' largest step, and the bad folds. No calibration and no time alignment (the
+demonstrations last 2.5-5 s), so RMSE and coverage are not comparable with part 1's.
 
 Part 3 (``--part coverage``), coverage of held-out demonstrations over many generated sets
 (``smooth_deviations``; not the sets above): separates the calibration mechanism from the
@@ -287,8 +294,9 @@ def loo(Ts: np.ndarray, Ys: np.ndarray, method) -> dict[str, float]:
         keep = np.arange(Ts.shape[0]) != k
         fold_bad = False
         for j in range(Ys.shape[2]):
-            y_tr, t_tr = Ys[keep, :, j], Ts[keep]
-            y_te, t_te = Ys[k, :, j], Ts[k]
+            # copies: movement_primitives' ProMP normalises the time arrays it gets in place
+            y_tr, t_tr = Ys[keep, :, j].copy(), Ts[keep].copy()
+            y_te, t_te = Ys[k, :, j].copy(), Ts[k].copy()
             scale = float(np.std(y_tr))
             scale = scale if scale > 0 else 1.0
             c0 = time.process_time()
@@ -310,6 +318,7 @@ def loo(Ts: np.ndarray, Ys: np.ndarray, method) -> dict[str, float]:
                     float(np.nanmean(nlpd)),
                     float(np.nanmean(np.abs(z) <= 1.96 * s)),
                     float(np.max(np.abs(np.diff(mean)))) / max(demo_step, 1e-12),
+                    float(np.nanmax(np.abs(np.diff(std)))) / max(demo_step, 1e-12),
                 )
             )
         bad += fold_bad
@@ -319,6 +328,7 @@ def loo(Ts: np.ndarray, Ys: np.ndarray, method) -> dict[str, float]:
         "nlpd": float(np.mean(r[:, 1])),
         "cov": float(np.mean(r[:, 2])),
         "step": float(np.max(r[:, 3])),
+        "std_step": float(np.max(r[:, 4])),
         "cpu": cpu,
         "bad": bad,
         "folds": Ts.shape[0],
@@ -409,7 +419,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument(
         "--part",
-        choices=("all", "loo", "hetero", "coverage"),
+        choices=("all", "loo", "hetero", "coverage", "lasa-raw"),
         default="all",
         help="one part: leave-one-demonstration-out, heteroscedastic sets, or the coverage "
         "study on generated smoothly deviating demonstrations (not part of 'all')",
@@ -429,6 +439,11 @@ def main(argv: list[str] | None = None) -> None:
         for line in coverage_table(args.coverage_sets, args.n_steps):
             print(line, flush=True)
         return
+    if args.part == "lasa-raw":
+        if args.lasa is None:
+            parser.error("--part lasa-raw needs --lasa DIR")
+        lasa_raw_table(args.lasa, args.quick)
+        return
     if args.part != "loo":
         print("## Generated heteroscedastic sets (200 train, 2000 test points)\n")
         for line in hetero_table([0] if args.quick else [0, 1, 2]):
@@ -447,8 +462,11 @@ def main(argv: list[str] | None = None) -> None:
     if args.lasa is not None:
         sets.update(lasa_sets(args.lasa, args.n_steps, args.quick))
     print(f"## Leave-one-demonstration-out (n_steps={args.n_steps}, ProMP {N_WEIGHTS} weights)\n")
-    print("| set | method | RMSE | NLPD | 95% cov. | max step ratio | CPU s | bad folds |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| set | method | RMSE | NLPD | 95% cov. | max step ratio | max std step ratio | CPU s "
+        "| bad folds |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     summary: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
     for name, (T, Y) in sets.items():
         for m, fn in methods.items():
@@ -456,7 +474,8 @@ def main(argv: list[str] | None = None) -> None:
             summary[m].append(r)
             print(
                 f"| {name} (d={Y.shape[2]}) | {m} | {r['rmse']:.3f} | {r['nlpd']:.2f} | "
-                f"{r['cov']:.3f} | {r['step']:.2f} | {r['cpu']:.2f} | {r['bad']}/{r['folds']} |",
+                f"{r['cov']:.3f} | {r['step']:.2f} | {r['std_step']:.2f} | {r['cpu']:.2f} | "
+                f"{r['bad']}/{r['folds']} |",
                 flush=True,
             )
     groups = {"teacher and synthetic sets": [n for n in sets if not n.startswith("lasa/")]}
@@ -468,14 +487,53 @@ def main(argv: list[str] | None = None) -> None:
         print_summary({m: [rs[names.index(n)] for n in members] for m, rs in summary.items()})
 
 
+def lasa_raw_table(folder: Path, quick: bool) -> None:
+    """Part 4: ``LocalGP()`` defaults on the LASA shapes' own time stamps (see the module
+    docstring)."""
+    from scipy.io import loadmat
+
+    files = sorted(Path(folder).glob("*.mat"))
+    if not files:
+        raise SystemExit(f"--lasa: no .mat files in {folder}")
+    if quick:
+        files = files[::3]
+
+    def default_local(t_tr, y_tr, t_te):
+        return fit_predict_gp(LocalGP(), t_tr, y_tr, t_te)
+
+    print("## LocalGP() on the LASA demonstrations' own time stamps (s), all samples\n")
+    print("| shape | max step ratio | max std step ratio | bad folds | CPU s |")
+    print("|---|---|---|---|---|")
+    rows = []
+    for path in files:
+        demos = loadmat(path, simplify_cells=True)["demos"]
+        T = np.stack([np.asarray(d["t"], float) for d in demos])
+        Y = np.stack([np.asarray(d["pos"], float).T for d in demos])
+        r = loo(T, Y, default_local)
+        rows.append(r)
+        print(
+            f"| {path.stem} | {r['step']:.2f} | {r['std_step']:.2f} | {r['bad']}/{r['folds']} | "
+            f"{r['cpu']:.1f} |",
+            flush=True,
+        )
+    steps = np.array([r["step"] for r in rows])
+    std_steps = np.array([r["std_step"] for r in rows])
+    print(
+        f"\n{len(rows)} shapes: largest step ratio {steps.max():.2f} (median "
+        f"{np.median(steps):.2f}, {int(np.sum(steps > 2))} shapes above 2); std "
+        f"{std_steps.max():.2f} (median {np.median(std_steps):.2f}, "
+        f"{int(np.sum(std_steps > 2))} above 2); bad folds {sum(r['bad'] for r in rows)}"
+    )
+
+
 def print_summary(summary: dict[str, list[dict[str, float]]]) -> None:
     """Per method: means over the sets, the worst step ratio, the bad folds, the range of the
     per-set coverage, and the RMSE ratio / NLPD difference to the ProMP on the same sets."""
     print(
-        "\n| method | mean RMSE | mean NLPD | mean cov. | cov. per set | worst step | bad folds | "
-        "RMSE / ProMP | NLPD - ProMP |"
+        "\n| method | mean RMSE | mean NLPD | mean cov. | cov. per set | worst step | "
+        "worst std step | bad folds | RMSE / ProMP | NLPD - ProMP |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     ref = summary["promp"]
     for m, rs in summary.items():
         rm = np.mean([r["rmse"] for r in rs])
@@ -486,7 +544,8 @@ def print_summary(summary: dict[str, list[dict[str, float]]]) -> None:
         print(
             f"| {m} | {rm:.3f} | {nl:.2f} | {np.mean(covs):.3f} | "
             f"{min(covs):.3f} - {max(covs):.3f} | {max(r['step'] for r in rs):.2f} | "
-            f"{sum(r['bad'] for r in rs)} | {ratio:.2f} | {dn:+.2f} |"
+            f"{max(r['std_step'] for r in rs):.2f} | {sum(r['bad'] for r in rs)} | "
+            f"{ratio:.2f} | {dn:+.2f} |"
         )
 
 
