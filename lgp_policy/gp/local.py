@@ -51,11 +51,11 @@ that behaviour for comparison). Rules:
   model; its cost does not grow with the number of models.
 
 The noise is ``r(x) = sum_l rho_l(x) r_l(x)``: the noise function of the model whose training
-inputs surround ``x``, blended with its neighbours over ``NOISE_BLEND`` (a tenth) of a window's
-width beyond its training inputs, each evaluated at the nearest point of its own window
+inputs surround ``x``, blended with its neighbours over ``NOISE_BLEND`` (a twentieth) of a
+window's width beyond its training inputs, each evaluated at the nearest point of its own window
 (``LocalGP._noise_weights``). Neighbouring noise functions are estimated from different data
 and can disagree at their common edge (on the LASA handwriting set by up to half the data's
-range); the blend spreads that over a tenth of a window instead of one input spacing.
+range); the blend spreads that over a twentieth of a window instead of one input spacing.
 
 Length-scale floor. With the default kernel, the shared search cannot take the squared
 exponential's length scale below the median spacing of the inputs that learn it (thinned
@@ -131,7 +131,7 @@ SKIP_DISTANCE = 9.0
 
 #: The local noise functions are blended over this fraction of a model's window (per feature,
 #: at least one input spacing) beyond its training inputs (``LocalGP._noise_weights``).
-NOISE_BLEND = 0.1
+NOISE_BLEND = 0.05
 
 #: ``input_scale="auto"`` rescales a feature by powers of this base (an SI prefix step).
 INPUT_SCALE_BASE = 1000.0
@@ -677,17 +677,18 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         ``rho_l ~ exp(-|g_l(x) / h_l|^2 / 2)`` over the ``relevant`` models, ``g_l`` the distance
         from ``x`` to the bounding box of model ``l``'s training inputs (0 inside) and ``h_l``
         per feature ``NOISE_BLEND`` times the box's width, at least the mean spacing of the
-        distinct training inputs: the noise is that of the model whose data lie at ``x``, blended
-        with a neighbour over a tenth of a window between two windows (and averaged where boxes
-        overlap). With ``h_l`` one input spacing (before), dense distinct inputs (the LASA
-        handwriting set: 6000 time stamps, 15 models) switched between neighbouring noise
-        functions within one sample, and the std stepped by up to 240x the demonstrations'
-        largest step (median over the 30 shapes 21x; 1.7x now). A noise function is an estimate
-        from the model's own data; outside its window it only extrapolates (so each is evaluated
-        at the nearest point of its window). Weighting by how much a model
-        knows about ``f(x)`` (its precision gain) mixed in those extrapolations wherever the
-        signal length scale exceeded a window: on demonstrations that split fast the std was
-        0.3x the demonstrations' spread and jumped at the model boundaries.
+        distinct training inputs: the noise is that of the model whose data lie at ``x``,
+        blended with a neighbour over a twentieth of a window between two windows (and averaged
+        where boxes overlap). With ``h_l`` one input spacing (before), dense distinct inputs
+        (the LASA handwriting set: 6000 time stamps, 15 models) switched between neighbouring
+        noise functions within one sample, and the std stepped by up to 240x the
+        demonstrations' largest step (median over the 30 shapes 21x; 2.8x now; a tenth of a
+        window gave 1.7x but moved the coffee policy's std tables more, see docs/design-gp.md).
+        A noise function is an estimate from the model's own data; outside its window it only
+        extrapolates (so each is evaluated at the nearest point of its window). Weighting by how
+        much a model knows about ``f(x)`` (its precision gain) mixed in those extrapolations
+        wherever the signal length scale exceeded a window: on demonstrations that split fast the
+        std was 0.3x the demonstrations' spread and jumped at the model boundaries.
         """
         lo, hi = self._boxes[:, 0][:, None, :], self._boxes[:, 1][:, None, :]  # (L, 1, d)
         gap = np.maximum(np.maximum(lo - X[None], X[None] - hi), 0.0) / self._blend[:, None, :]
