@@ -780,7 +780,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             prec = np.maximum(prec, 1.0 / prior_var)
             mean = np.sum(beta * mu / var, axis=0) / prec
             v = 1.0 / prec
-        else:  # "nearest": moment-matched mixture of the n_neighbors models, weights w_l / v_l
+        else:  # "nearest": mixture of the n_neighbors models, weights (w_l - w_next) / v_l
             logpi = np.where(
                 relevant[:, :, None], _taper(logw_nl.T, relevant) - np.log(var), -np.inf
             )
@@ -833,8 +833,8 @@ def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
 
 def _floor_length_scale(kernel: Kernel, inputs: list[NDArray[np.float64]]) -> Kernel:
     """A copy of ``kernel`` whose squared-exponential length scales cannot go below the inputs'
-    spacing (the median over ``inputs`` of the median gap between consecutive distinct values,
-    the smallest over the features): a shorter length scale is white noise on the inputs that
+    spacing (the median, over the arrays in ``inputs`` and their features, of the median gap
+    between consecutive distinct values): a shorter length scale is white noise on the inputs that
     learn it, so they cannot identify it, and on denser inputs it interpolates every point
     (measured on the LASA handwriting set Multi_Models_1: a shared search on thinned subsets
     stopped at 1.1e-4 s against their 2.6e-3 s spacing, and the mean stepped 119x further than
