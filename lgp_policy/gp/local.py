@@ -60,7 +60,8 @@ range); the blend spreads that over a twentieth of a window instead of one input
 Length-scale floor. With the default kernel, the shared search cannot take the squared
 exponential's length scale below the median spacing of the inputs that learn it (thinned
 subsets): shorter, it is white noise on those inputs, which cannot identify it, while on the
-denser full data it interpolates single points (``_floor_length_scale``). An explicit kernel's
+denser full data it interpolates single points
+(:func:`~lgp_policy.gp.heteroscedastic.floor_length_scale`). An explicit kernel's
 bounds are used as given.
 
 Input units (``input_scale``). Everything above runs on ``X / input_scale_`` (one divisor per
@@ -108,6 +109,7 @@ from lgp_policy.gp.heteroscedastic import (
     check_noise_bounds,
     em_warning,
     fit_noise_model,
+    floor_length_scale,
     most_likely_em_many,
     signal_kernel,
 )
@@ -584,7 +586,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             subsets, plan["complete"] = self._shared_data(X, index_sets)
             plan["subsets"] = [(X[i], yn[i]) for i in subsets]
             if self.kernel is None:
-                plan["kernel"] = _floor_length_scale(kernel, [X[i] for i in subsets])
+                plan["kernel"] = floor_length_scale(kernel, [X[i] for i in subsets])
         return plan
 
     def _em_models(self, plan: dict[str, Any], learned: Any) -> list[HeteroscedasticGP]:
@@ -829,33 +831,6 @@ def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
     for e, plan, result in zip(columns, plans, learned, strict=True):
         e.models_ = e._em_models(plan, result)
         e._prepare_prediction()
-
-
-def _floor_length_scale(kernel: Kernel, inputs: list[NDArray[np.float64]]) -> Kernel:
-    """A copy of ``kernel`` whose squared-exponential length scales cannot go below the inputs'
-    spacing (the median, over the arrays in ``inputs`` and their features, of the median gap
-    between consecutive distinct values): a shorter length scale is white noise on the inputs that
-    learn it, so they cannot identify it, and on denser inputs it interpolates every point
-    (measured on the LASA handwriting set Multi_Models_1: a shared search on thinned subsets
-    stopped at 1.1e-4 s against their 2.6e-3 s spacing, and the mean stepped 119x further than
-    any demonstration between two samples)."""
-    gaps = []
-    for Xs in inputs:
-        for j in range(Xs.shape[1]):
-            u = np.unique(Xs[:, j])
-            if u.size > 1:
-                gaps.append(float(np.median(np.diff(u))))
-    if not gaps:
-        return kernel
-    floor = float(np.median(gaps))
-    out = kernel.clone()
-    for leaf in out.leaves():
-        if isinstance(leaf, SquaredExponential):
-            low, high = (float(b) for b in leaf.length_scale_bounds)
-            low = min(max(low, floor), high)
-            leaf.length_scale_bounds = (low, high)
-            leaf.length_scale = np.clip(leaf.length_scale, low, high)
-    return out
 
 
 def _taper(logw: NDArray[np.float64], relevant: NDArray[np.bool_]) -> NDArray[np.float64]:
