@@ -57,12 +57,13 @@ window's width beyond its training inputs, each evaluated at the nearest point o
 and can disagree at their common edge (on the LASA handwriting set by up to half the data's
 range); the blend spreads that over a twentieth of a window instead of one input spacing.
 
-Length-scale floor. With the default kernel, the shared search cannot take the squared
-exponential's length scale below the median spacing of the inputs that learn it (thinned
-subsets): shorter, it is white noise on those inputs, which cannot identify it, while on the
-denser full data it interpolates single points
-(:func:`~lgp_policy.gp.heteroscedastic.floor_length_scale`). An explicit kernel's
-bounds are used as given.
+Length-scale floor. With the default kernel, a search (the shared one, or each local model's
+with ``hyperparameters="local"``) cannot take the squared exponential's length scale below the
+median spacing of the inputs that learn it (the thinned subsets, or the model's own inputs):
+shorter, it is white noise on those inputs, which cannot identify it, while on the denser full
+data it interpolates single points
+(:func:`~lgp_policy.gp.heteroscedastic.floor_length_scale`). An explicit kernel's bounds are
+used as given.
 
 Input units (``input_scale``). Everything above runs on ``X / input_scale_`` (one divisor per
 feature): the kernel's starting values and bounds, and with them Algorithm 1's radius, are read in
@@ -534,6 +535,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         target = (lambda idx: Yn[idx, 0]) if self._single_target else (lambda idx: Yn[idx])
         if self.hyperparameters == "shared" and self.optimizer is not None:
             subsets, _ = self._shared_data(X, index_sets)
+            kernel = self._learning_kernel(kernel, [X[i] for i in subsets])
             learners = [
                 GaussianProcess(kernel, optimizer=None, normalize_y=False).fit(X[i], target(i))
                 for i in subsets
@@ -545,7 +547,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         local_opt = self.optimizer if self.hyperparameters == "local" else None
         return [
             GaussianProcess(
-                kernel,
+                kernel if local_opt is None else self._learning_kernel(kernel, [X[idx]]),
                 optimizer=local_opt,
                 n_restarts=self.n_restarts,
                 normalize_y=False,
@@ -585,9 +587,14 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             # the data (sum of the subsets' LMLs), then run every model's EM with them fixed.
             subsets, plan["complete"] = self._shared_data(X, index_sets)
             plan["subsets"] = [(X[i], yn[i]) for i in subsets]
-            if self.kernel is None:
-                plan["kernel"] = floor_length_scale(kernel, [X[i] for i in subsets])
+            plan["kernel"] = self._learning_kernel(kernel, [X[i] for i in subsets])
         return plan
+
+    def _learning_kernel(self, kernel: Kernel, inputs: list[NDArray[np.float64]]) -> Kernel:
+        """The kernel a search starts from: the default kernel with its length scale floored at
+        the spacing of the ``inputs`` that learn it (``floor_length_scale``); an explicit kernel
+        as given."""
+        return floor_length_scale(kernel, inputs) if self.kernel is None else kernel
 
     def _em_models(self, plan: dict[str, Any], learned: Any) -> list[HeteroscedasticGP]:
         """The local models from the plan and the shared EM's result ``learned``."""
@@ -622,7 +629,8 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         models = []
         for Xl, yl in datasets:
             if self.hyperparameters == "local" and self.optimizer is not None:
-                result = fit_noise_model([(Xl, yl)], kernel, noise_kernel, method=self.method, **em)
+                own = self._learning_kernel(kernel, [Xl])
+                result = fit_noise_model([(Xl, yl)], own, noise_kernel, method=self.method, **em)
             else:
                 result = fit_noise_model(
                     [(Xl, yl)],
