@@ -109,32 +109,35 @@ def coffee_sets(n_steps: int, max_dims: int | None) -> dict[str, np.ndarray]:
     return {f"coffee/{k}": v[:, :, :max_dims] for k, v in data.items()}
 
 
-def lasa_sets(folder: Path, n_steps: int, quick: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``{"lasa/<shape>": (T, Y)}`` from the LASA Handwriting Dataset's ``.mat`` files in
-    ``folder``: each of a shape's demonstrations (``demos{i}.pos``, 2 x 1000 mm, on its own
-    ``demos{i}.t``) resampled to ``n_steps`` points on normalised time (``resample``), ``T``
-    the shared phase grid. ``quick``: every third shape."""
+def lasa_shapes(folder: Path, quick: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{shape: (T (7, 1000) s, Y (7, 1000, 2) mm)}`` from the LASA Handwriting Dataset's
+    ``.mat`` files in ``folder`` (``demos{i}.t``, ``demos{i}.pos``): each demonstration on its
+    own time stamps. ``quick``: every third shape."""
     from scipy.io import loadmat
-
-    from lgp_policy.lfd.encoding import resample
 
     files = sorted(Path(folder).glob("*.mat"))
     if not files:
         raise SystemExit(
             f"--lasa: no .mat files in {folder} (expected the dataset's DataSet folder)"
         )
-    if quick:
-        files = files[::3]
-    sets = {}
-    for path in files:
+    shapes = {}
+    for path in files[::3] if quick else files:
         demos = loadmat(path, simplify_cells=True)["demos"]
-        Y = np.stack(
-            [
-                resample(np.asarray(d["t"], float), np.asarray(d["pos"], float).T, n_steps)
-                for d in demos
-            ]
-        )
-        sets[f"lasa/{path.stem}"] = (np.tile(np.linspace(0.0, 1.0, n_steps), (len(Y), 1)), Y)
+        T = np.stack([np.asarray(d["t"], float) for d in demos])
+        shapes[path.stem] = (T, np.stack([np.asarray(d["pos"], float).T for d in demos]))
+    return shapes
+
+
+def lasa_sets(folder: Path, n_steps: int, quick: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{"lasa/<shape>": (T, Y)}``: each of a shape's demonstrations (:func:`lasa_shapes`)
+    resampled to ``n_steps`` points on normalised time (``resample``), ``T`` the shared phase
+    grid."""
+    from lgp_policy.lfd.encoding import resample
+
+    sets = {}
+    for name, (T, Y) in lasa_shapes(folder, quick).items():
+        Yr = np.stack([resample(t, y, n_steps) for t, y in zip(T, Y, strict=True)])
+        sets[f"lasa/{name}"] = (np.tile(np.linspace(0.0, 1.0, n_steps), (len(Yr), 1)), Yr)
     return sets
 
 
@@ -490,13 +493,6 @@ def main(argv: list[str] | None = None) -> None:
 def lasa_raw_table(folder: Path, quick: bool) -> None:
     """Part 4: ``LocalGP()`` defaults on the LASA shapes' own time stamps (see the module
     docstring)."""
-    from scipy.io import loadmat
-
-    files = sorted(Path(folder).glob("*.mat"))
-    if not files:
-        raise SystemExit(f"--lasa: no .mat files in {folder}")
-    if quick:
-        files = files[::3]
 
     def default_local(t_tr, y_tr, t_te):
         return fit_predict_gp(LocalGP(), t_tr, y_tr, t_te)
@@ -505,14 +501,11 @@ def lasa_raw_table(folder: Path, quick: bool) -> None:
     print("| shape | max step ratio | max std step ratio | bad folds | CPU s |")
     print("|---|---|---|---|---|")
     rows = []
-    for path in files:
-        demos = loadmat(path, simplify_cells=True)["demos"]
-        T = np.stack([np.asarray(d["t"], float) for d in demos])
-        Y = np.stack([np.asarray(d["pos"], float).T for d in demos])
+    for name, (T, Y) in lasa_shapes(folder, quick).items():
         r = loo(T, Y, default_local)
         rows.append(r)
         print(
-            f"| {path.stem} | {r['step']:.2f} | {r['std_step']:.2f} | {r['bad']}/{r['folds']} | "
+            f"| {name} | {r['step']:.2f} | {r['std_step']:.2f} | {r['bad']}/{r['folds']} | "
             f"{r['cpu']:.1f} |",
             flush=True,
         )
