@@ -40,7 +40,11 @@ model and of the homoscedastic ``GaussianProcess`` on a large test set; the gain
 homoscedastic minus heteroscedastic (positive: the heteroscedastic GP is better). The *oracle
 gain* is what the true noise model gains over the best constant noise on the same test set
 (true ``f`` in both): the largest gain any heteroscedastic model can reach there (about 0.09
-nats on Goldberg's set, whose noise std only doubles over the input range).
+nats on Goldberg's set, whose noise std only doubles over the input range). With
+``--hetero-csv FILE ...``, also real heteroscedastic sets read from CSV files (the last two
+columns x and y; nothing is downloaded), e.g. the motorcycle crash data (Silverman 1985; R's
+``MASS::mcycle``, Rdatasets' ``MASS/mcycle.csv``): 5-fold cross-validation on 3 shuffles,
+standardised on each training fold, with ``LocalGP()`` next to the global models.
 
 Part 4 (``--part lasa-raw``, with ``--lasa DIR``): ``LocalGP()`` with its default settings, as
 a user would call it, on each LASA shape's demonstrations on their own time stamps in seconds
@@ -60,6 +64,7 @@ Usage::
     python benchmarks/gp_quality.py --quick    # a few output dimensions, 1 seed (~1-2 min)
     python benchmarks/gp_quality.py            # every dimension, 3 seeds
     python benchmarks/gp_quality.py --part loo --lasa LASAHandwritingDataset/DataSet
+    python benchmarks/gp_quality.py --part hetero --hetero-csv mcycle.csv
 """
 
 from __future__ import annotations
@@ -409,6 +414,69 @@ def hetero_table(seeds: list[int], n_train: int = 200, n_test: int = 2000) -> li
     return lines
 
 
+def read_xy_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, y)`` from a CSV with one header row whose last two columns are the input and the
+    output (Rdatasets' ``MASS/mcycle.csv``: row name, ``times``, ``accel``); at most 100 000
+    rows are read. Raises ``ValueError`` naming what is wrong."""
+    if not path.is_file():
+        raise ValueError(f"{path} is not a file")
+    data = np.genfromtxt(path, delimiter=",", skip_header=1, max_rows=100_000)
+    if data.ndim != 2 or data.shape[1] < 2 or data.shape[0] < 20:
+        raise ValueError(f"{path}: expected a header row and >= 20 rows of >= 2 columns")
+    x, y = data[:, -2], data[:, -1]
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise ValueError(f"{path}: the last two columns must be numbers")
+    return x, y
+
+
+def real_hetero_table(
+    sets: dict[str, tuple[np.ndarray, np.ndarray]], seeds: list[int], k: int = 5
+) -> list[str]:
+    """Real heteroscedastic regression sets: ``k``-fold cross-validation per seed (a shuffle),
+    inputs and outputs standardised on each training fold; NLPD of the homoscedastic GP, of
+    ``HeteroscedasticGP`` with every noise model and of ``LocalGP()``, their gain over the
+    homoscedastic GP (mean over all folds), the worst fold's gain and the folds lost by more
+    than 0.1 nats."""
+    models: dict[str, Callable[[], Any]] = {"hom": GaussianProcess}
+    for method in METHODS:
+        models[method] = functools.partial(HeteroscedasticGP, method=method, random_state=0)
+    models["local"] = functools.partial(LocalGP, random_state=0)
+    het = [m for m in models if m != "hom"]
+    lines = [
+        "| set | n | folds | NLPD hom. | "
+        + " | ".join(f"NLPD {m} | gain {m} | worst fold {m} | lost {m}" for m in het)
+        + " |",
+        "|" + "---|" * (4 + 4 * len(het)),
+    ]
+    for name, (x, y) in sets.items():
+        nl: dict[str, list[float]] = {m: [] for m in models}
+        for seed in seeds:
+            perm = np.random.default_rng(seed).permutation(x.shape[0])
+            for test in np.array_split(perm, k):
+                train = np.setdiff1d(perm, test)
+                mx, sx = x[train].mean(), x[train].std()
+                my, sy = y[train].mean(), y[train].std()
+                X, Y = ((x - mx) / sx)[:, None], (y - my) / sy
+                for m, make in models.items():
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        mean, std = make().fit(X[train], Y[train]).predict(X[test], return_std=True)
+                    z = (Y[test] - mean) / std
+                    nl[m].append(float(np.mean(0.5 * np.log(2 * np.pi * std**2) + 0.5 * z**2)))
+        hom = np.asarray(nl["hom"])
+        row = [name, str(x.shape[0]), str(hom.shape[0]), f"{hom.mean():.3f}"]
+        for m in het:
+            gain = hom - np.asarray(nl[m])
+            row += [
+                f"{np.mean(nl[m]):.3f}",
+                f"{gain.mean():+.3f}",
+                f"{gain.min():+.3f}",
+                str(int(np.sum(gain < -0.1))),
+            ]
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="2 dims per frame, 1 seed")
@@ -436,7 +504,25 @@ def main(argv: list[str] | None = None) -> None:
         help="also leave-one-out on the LASA Handwriting Dataset's .mat files in DIR (real "
         "human demonstrations; its DataSet folder)",
     )
+    parser.add_argument(
+        "--hetero-csv",
+        type=Path,
+        nargs="+",
+        default=[],
+        metavar="FILE",
+        help="also real heteroscedastic regression sets, each a CSV whose last two columns are "
+        "x and y (e.g. Rdatasets' MASS/mcycle.csv, the motorcycle crash data), in the "
+        "heteroscedastic part: 5-fold cross-validation",
+    )
     args = parser.parse_args(argv)
+    real_sets = {}
+    for path in args.hetero_csv:  # read before any work: a bad file fails at once
+        try:
+            real_sets[path.stem] = read_xy_csv(path)
+        except ValueError as err:
+            parser.error(f"--hetero-csv: {err}")
+    if real_sets and args.part not in ("all", "hetero"):
+        parser.error("--hetero-csv belongs to the heteroscedastic part: --part hetero or all")
     if args.part == "coverage":
         print(f"## Coverage over {args.coverage_sets} generated sets per row (LocalGP)\n")
         for line in coverage_table(args.coverage_sets, args.n_steps):
@@ -451,6 +537,10 @@ def main(argv: list[str] | None = None) -> None:
         print("## Generated heteroscedastic sets (200 train, 2000 test points)\n")
         for line in hetero_table([0] if args.quick else [0, 1, 2]):
             print(line, flush=True)
+        if real_sets:
+            print("\n## Real heteroscedastic sets (5-fold cross-validation, standardised)\n")
+            for line in real_hetero_table(real_sets, [0] if args.quick else [0, 1, 2]):
+                print(line, flush=True)
         if args.part == "hetero":
             return
         print()
