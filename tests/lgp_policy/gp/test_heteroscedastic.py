@@ -153,3 +153,41 @@ def test_default_kernel_length_scale_is_floored_at_the_input_spacing():
     explicit = SquaredExponential(1.0, 1.0) + WhiteNoise(0.1)
     gp = HeteroscedasticGP(explicit, random_state=0).fit(X, y)
     assert signal_kernel(gp.gp_.kernel_).length_scale_bounds == (1e-5, 1e5)
+
+
+def test_single_residual_log_bias_is_estimated_from_the_residuals():
+    """The log bias of single squared residuals: the Gaussian value 1.27 for Gaussian draws, ~0
+    for residuals of one magnitude (persistent offsets of demonstrations), never beyond [0, 1.27]
+    (zero residuals, whose logs sit at the floor, do not push it up)."""
+    from lgp_policy.gp.heteroscedastic import _single_residual_log_bias
+
+    rng = np.random.default_rng(0)
+    gaussian = rng.standard_normal(20000) ** 2
+    assert _single_residual_log_bias(gaussian, -30.0, 10.0) == pytest.approx(1.27, abs=0.05)
+    offsets = np.repeat([0.9, 1.0, 1.1], 100) ** 2
+    assert _single_residual_log_bias(offsets, -30.0, 10.0) < 0.05
+    with_zeros = np.r_[np.zeros(50), gaussian[:50]]
+    assert 0.0 <= _single_residual_log_bias(with_zeros, -13.8, 4.6) <= 1.2704
+
+
+@pytest.mark.parametrize("local", [False, True])
+def test_noise_of_offset_demonstrations_on_their_own_stamps_matches_their_spread(local):
+    """Six demonstrations that each keep their own offset from the mean (growing with t), each
+    on its own time stamps: the predicted noise std is their spread about the mean. With the
+    Gaussian log bias of a single residual (1.27 nats) it came out 1.7-1.8x too wide. One
+    global model pools the trend into its estimate of the bias (1.3x); LocalGP's windows hold
+    little of it."""
+    from lgp_policy.gp.local import LocalGP
+
+    rng = np.random.default_rng(3)
+    offsets = np.array([-1.2, -0.9, -0.7, 0.8, 1.0, 1.1])
+    t = np.concatenate([np.sort(rng.uniform(0.0, 1.0, 150)) for _ in offsets])
+    spread = 0.02 + 0.2 * t
+    y = np.sin(2 * np.pi * t) + np.repeat(offsets, 150) * spread + 0.002 * rng.standard_normal(900)
+    model = (LocalGP if local else HeteroscedasticGP)(random_state=0).fit(t[:, None], y)
+    grid = np.linspace(0.1, 0.9, 9)
+    ratio = np.sqrt(model.noise_variance(grid[:, None])) / (np.std(offsets) * (0.02 + 0.2 * grid))
+    if local:
+        np.testing.assert_allclose(ratio, 1.0, rtol=0.3)
+    else:
+        assert np.all((ratio > 1.0) & (ratio < 1.45)), ratio
