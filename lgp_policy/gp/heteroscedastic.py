@@ -134,7 +134,11 @@ def _single_residual_log_bias(e: NDArray[np.float64], lo: float, hi: float) -> f
     the residuals' own spread: Goldberg's noise came out 26% low)."""
     logs = np.clip(np.log(np.maximum(e, 1e-300)), lo, hi)
     gap = math.log(max(float(np.mean(e)), 1e-300)) - float(np.mean(logs))
-    return min(max(gap, 0.0), float(-_log_mean_chi2_bias(np.ones(1))[0]))
+    return min(max(gap, 0.0), GAUSSIAN_SINGLE_LOG_BIAS)
+
+
+#: ``-E[log chi2_1] = log 2 - psi(1/2) = 1.27``: the log bias of one Gaussian squared residual.
+GAUSSIAN_SINGLE_LOG_BIAS = float(-_log_mean_chi2_bias(np.ones(1))[0])
 
 
 def _log_mean_chi2_var(m: NDArray[np.float64]) -> NDArray[np.float64]:
