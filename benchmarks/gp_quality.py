@@ -51,7 +51,10 @@ a user would call it, on each LASA shape's demonstrations on their own time stam
 (all 1000 samples: 6000 distinct inputs per fold, about 15 local models), leave one
 demonstration out, per output dimension: the largest step of the predicted mean and std against
 the demonstrations' largest step, and the bad folds. No calibration and no time alignment (the
-demonstrations last 2.5-5 s), so RMSE and coverage are not comparable with part 1's.
+demonstrations last 2.5-5 s), so RMSE and coverage are not comparable with part 1's. With
+``--lasa-time normalised`` each demonstration's stamps are divided by its duration (``t /
+t_end``: 6000 distinct inputs on [0, 1], every demonstration starting at 0 and ending at 1), and
+a ProMP and ``LocalGP()`` with the new-demonstration factor run on the same folds.
 
 Part 3 (``--part coverage``), coverage of held-out demonstrations over many generated sets
 (``smooth_deviations``; not the sets above): separates the calibration mechanism from the
@@ -518,6 +521,13 @@ def main(argv: list[str] | None = None) -> None:
         "x and y (e.g. Rdatasets' MASS/mcycle.csv, the motorcycle crash data), in the "
         "heteroscedastic part: 5-fold cross-validation",
     )
+    parser.add_argument(
+        "--lasa-time",
+        choices=("seconds", "normalised"),
+        default="seconds",
+        help="time axis of --part lasa-raw: the stamps in seconds, or each demonstration's "
+        "divided by its duration (then also RMSE, NLPD and coverage against a ProMP)",
+    )
     args = parser.parse_args(argv)
     real_sets = {}
     for path in args.hetero_csv:  # read before any work: a bad file fails at once
@@ -535,7 +545,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.part == "lasa-raw":
         if args.lasa is None:
             parser.error("--part lasa-raw needs --lasa DIR")
-        lasa_raw_table(args.lasa, args.quick)
+        lasa_raw_table(args.lasa, args.quick, args.lasa_time)
         return
     if args.part != "loo":
         print("## Generated heteroscedastic sets (200 train, 2000 test points)\n")
@@ -584,33 +594,61 @@ def main(argv: list[str] | None = None) -> None:
         print_summary({m: [rs[names.index(n)] for n in members] for m, rs in summary.items()})
 
 
-def lasa_raw_table(folder: Path, quick: bool) -> None:
+def lasa_raw_table(folder: Path, quick: bool, time_axis: str = "seconds") -> None:
     """Part 4: ``LocalGP()`` defaults on the LASA shapes' own time stamps (see the module
-    docstring)."""
+    docstring); ``time_axis="normalised"``: each demonstration's stamps divided by its duration
+    (``t / t_end``, distinct inputs on [0, 1]), with a ProMP on the same folds and ``LocalGP()``'s
+    std also times ``new_demonstration_scale`` (``-cal``) for RMSE, NLPD and coverage."""
+    promp = make_methods(100, ())["promp"]
 
     def default_local(t_tr, y_tr, t_te):
         return fit_predict_gp(LocalGP(), t_tr, y_tr, t_te)
 
-    print("## LocalGP() on the LASA demonstrations' own time stamps (s), all samples\n")
-    print("| shape | max step ratio | max std step ratio | bad folds | CPU s |")
-    print("|---|---|---|---|---|")
-    rows = []
-    for name, (T, Y) in lasa_shapes(folder, quick).items():
-        r = loo(T, Y, default_local)
-        rows.append(r)
-        print(
-            f"| {name} | {r['step']:.2f} | {r['std_step']:.2f} | {r['bad']}/{r['folds']} | "
-            f"{r['cpu']:.1f} |",
-            flush=True,
-        )
-    steps = np.array([r["step"] for r in rows])
-    std_steps = np.array([r["std_step"] for r in rows])
+    def calibrated(t_tr, y_tr, t_te):
+        mean, std = default_local(t_tr, y_tr, t_te)
+        return mean, std * new_demonstration_scale(t_tr.shape[0])
+
+    methods: dict[str, Callable[..., Any]] = {"local": default_local}
+    if time_axis == "normalised":
+        methods.update({"local-cal": calibrated, "promp": promp})
+    unit = "s" if time_axis == "seconds" else "t / t_end"
+    print(f"## LocalGP() on the LASA demonstrations' own time stamps ({unit}), all samples\n")
     print(
-        f"\n{len(rows)} shapes: largest step ratio {steps.max():.2f} (median "
-        f"{np.median(steps):.2f}, {int(np.sum(steps > 2))} shapes above 2); std "
-        f"{std_steps.max():.2f} (median {np.median(std_steps):.2f}, "
-        f"{int(np.sum(std_steps > 2))} above 2); bad folds {sum(r['bad'] for r in rows)}"
+        "| shape | method | RMSE | NLPD | 95% cov. | max step ratio | max std step ratio "
+        "| bad folds | CPU s |"
     )
+    print("|---|---|---|---|---|---|---|---|---|")
+    rows: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
+    for name, (T, Y) in lasa_shapes(folder, quick).items():
+        if time_axis == "normalised":
+            T = (T - T[:, :1]) / (T[:, -1:] - T[:, :1])
+        for m, fn in methods.items():
+            r = loo(T, Y, fn)
+            rows[m].append(r)
+            print(
+                f"| {name} | {m} | {r['rmse']:.3f} | {r['nlpd']:.2f} | {r['cov']:.3f} | "
+                f"{r['step']:.2f} | {r['std_step']:.2f} | {r['bad']}/{r['folds']} | "
+                f"{r['cpu']:.1f} |",
+                flush=True,
+            )
+    for m, rs in rows.items():
+        steps = np.array([r["step"] for r in rs])
+        std_steps = np.array([r["std_step"] for r in rs])
+        line = (
+            f"\n{m}, {len(rs)} shapes: largest step ratio {steps.max():.2f} (median "
+            f"{np.median(steps):.2f}, {int(np.sum(steps > 2))} shapes above 2); std "
+            f"{std_steps.max():.2f} (median {np.median(std_steps):.2f}, "
+            f"{int(np.sum(std_steps > 2))} above 2); bad folds {sum(r['bad'] for r in rs)}"
+        )
+        if "promp" in rows:
+            pairs = list(zip(rs, rows["promp"], strict=True))
+            covs = [r["cov"] for r in rs]
+            line += (
+                f"; RMSE / ProMP {np.mean([r['rmse'] / q['rmse'] for r, q in pairs]):.3f}, "
+                f"NLPD - ProMP {np.mean([r['nlpd'] - q['nlpd'] for r, q in pairs]):+.2f}, "
+                f"coverage {np.mean(covs):.3f} (per shape {min(covs):.3f}-{max(covs):.3f})"
+            )
+        print(line)
 
 
 def print_summary(summary: dict[str, list[dict[str, float]]]) -> None:
