@@ -296,6 +296,30 @@ def make_methods(
     return methods
 
 
+def loo_table(
+    sets: dict[str, tuple[np.ndarray, np.ndarray]], methods: dict[str, Callable[..., Any]]
+) -> dict[str, list[dict[str, float]]]:
+    """Leave one demonstration out of every set with every method, one printed row each;
+    returns ``{method: [loo result per set]}``."""
+    print(
+        "| set | method | RMSE | NLPD | 95% cov. | max step ratio | max std step ratio | CPU s "
+        "| bad folds |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    summary: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
+    for name, (T, Y) in sets.items():
+        for m, fn in methods.items():
+            r = loo(T, Y, fn)
+            summary[m].append(r)
+            print(
+                f"| {name} (d={Y.shape[2]}) | {m} | {r['rmse']:.3f} | {r['nlpd']:.2f} | "
+                f"{r['cov']:.3f} | {r['step']:.2f} | {r['std_step']:.2f} | {r['cpu']:.2f} | "
+                f"{r['bad']}/{r['folds']} |",
+                flush=True,
+            )
+    return summary
+
+
 def loo(Ts: np.ndarray, Ys: np.ndarray, method) -> dict[str, float]:
     """Leave-one-demonstration-out over every output dimension; averaged metrics."""
     rows = []
@@ -367,6 +391,14 @@ def hetero_sets():
     ]
 
 
+def regression_models() -> dict[str, Callable[[], Any]]:
+    """The homoscedastic GP (``"hom"``) and ``HeteroscedasticGP`` with every noise model."""
+    models: dict[str, Callable[[], Any]] = {"hom": GaussianProcess}
+    for method in METHODS:
+        models[method] = functools.partial(HeteroscedasticGP, method=method, random_state=0)
+    return models
+
+
 def hetero_table(seeds: list[int], n_train: int = 200, n_test: int = 2000) -> list[str]:
     """NLPD of the homoscedastic GP and of ``HeteroscedasticGP`` with every noise model
     (``METHODS``), the gain of each, the oracle gain and CPU seconds (fit + predict)."""
@@ -379,9 +411,7 @@ def hetero_table(seeds: list[int], n_train: int = 200, n_test: int = 2000) -> li
         "|" + "---|" * ncol,
     ]
     for name, (a, b), f, sd in hetero_sets():
-        models: dict[str, Callable[[], Any]] = {"hom": GaussianProcess}
-        for method in METHODS:
-            models[method] = functools.partial(HeteroscedasticGP, method=method, random_state=0)
+        models = regression_models()
         nl: dict[str, list[float]] = {k: [] for k in models}
         cpu = dict.fromkeys(models, 0.0)
         oracle: list[float] = []
@@ -441,10 +471,7 @@ def real_hetero_table(
     homoscedastic GP (mean over all folds), the worst fold's gain and the folds lost by more
     than 0.1 nats; ``bad``: folds with a non-finite, zero or > 100 x std prediction, any
     model."""
-    models: dict[str, Callable[[], Any]] = {"hom": GaussianProcess}
-    for method in METHODS:
-        models[method] = functools.partial(HeteroscedasticGP, method=method, random_state=0)
-    models["local"] = functools.partial(LocalGP, random_state=0)
+    models = {**regression_models(), "local": functools.partial(LocalGP, random_state=0)}
     het = [m for m in models if m != "hom"]
     lines = [
         "| set | n | folds | NLPD hom. | "
@@ -569,22 +596,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.lasa is not None:
         sets.update(lasa_sets(args.lasa, args.n_steps, args.quick))
     print(f"## Leave-one-demonstration-out (n_steps={args.n_steps}, ProMP {N_WEIGHTS} weights)\n")
-    print(
-        "| set | method | RMSE | NLPD | 95% cov. | max step ratio | max std step ratio | CPU s "
-        "| bad folds |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|")
-    summary: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
-    for name, (T, Y) in sets.items():
-        for m, fn in methods.items():
-            r = loo(T, Y, fn)
-            summary[m].append(r)
-            print(
-                f"| {name} (d={Y.shape[2]}) | {m} | {r['rmse']:.3f} | {r['nlpd']:.2f} | "
-                f"{r['cov']:.3f} | {r['step']:.2f} | {r['std_step']:.2f} | {r['cpu']:.2f} | "
-                f"{r['bad']}/{r['folds']} |",
-                flush=True,
-            )
+    summary = loo_table(sets, methods)
     groups = {"teacher and synthetic sets": [n for n in sets if not n.startswith("lasa/")]}
     if args.lasa is not None:
         groups["LASA, real human demonstrations"] = [n for n in sets if n.startswith("lasa/")]
@@ -613,24 +625,10 @@ def lasa_raw_table(folder: Path, quick: bool, time_axis: str = "seconds") -> Non
         methods.update({"local-cal": calibrated, "promp": promp})
     unit = "s" if time_axis == "seconds" else "t / t_end"
     print(f"## LocalGP() on the LASA demonstrations' own time stamps ({unit}), all samples\n")
-    print(
-        "| shape | method | RMSE | NLPD | 95% cov. | max step ratio | max std step ratio "
-        "| bad folds | CPU s |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|")
-    rows: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
-    for name, (T, Y) in lasa_shapes(folder, quick).items():
-        if time_axis == "normalised":
-            T = (T - T[:, :1]) / (T[:, -1:] - T[:, :1])
-        for m, fn in methods.items():
-            r = loo(T, Y, fn)
-            rows[m].append(r)
-            print(
-                f"| {name} | {m} | {r['rmse']:.3f} | {r['nlpd']:.2f} | {r['cov']:.3f} | "
-                f"{r['step']:.2f} | {r['std_step']:.2f} | {r['bad']}/{r['folds']} | "
-                f"{r['cpu']:.1f} |",
-                flush=True,
-            )
+    shapes = lasa_shapes(folder, quick)
+    if time_axis == "normalised":
+        shapes = {n: ((T - T[:, :1]) / (T[:, -1:] - T[:, :1]), Y) for n, (T, Y) in shapes.items()}
+    rows = loo_table(shapes, methods)
     for m, rs in rows.items():
         steps = np.array([r["step"] for r in rs])
         std_steps = np.array([r["std_step"] for r in rs])
