@@ -242,33 +242,59 @@ RESCUE_LENGTH_SCALES = (1.0 / 3.0, 1.0 / 10.0)
 signal length scales as fractions of the inputs' extent per feature."""
 
 
-def floor_length_scale(kernel: Kernel, inputs: list[NDArray[np.float64]]) -> Kernel:
-    """A copy of ``kernel`` whose squared-exponential length scales cannot go below the inputs'
-    spacing (the median, over the arrays in ``inputs`` and their features, of the median gap
-    between consecutive distinct values): a shorter length scale is white noise on the inputs that
+#: With the default kernel, the squared-exponential length scale stays below this fraction of
+#: the inputs' span (``bound_length_scale``); the encoder's kernel uses the same bound on its
+#: phase range.
+MAX_LENGTH_SCALE_FRACTION = 0.5
+
+
+def bound_length_scale(
+    kernel: Kernel, inputs: list[NDArray[np.float64]], span: float | None = None
+) -> Kernel:
+    """A copy of ``kernel`` whose squared-exponential length scales stay between the inputs'
+    spacing and ``MAX_LENGTH_SCALE_FRACTION`` of ``span`` (the data's largest per-feature
+    range; ``None`` or 0: no ceiling). Used with the default kernel only: an explicit kernel's
+    bounds are the user's.
+
+    Floor: the median, over the arrays in ``inputs`` and their features, of the median gap
+    between consecutive distinct values. A shorter length scale is white noise on the inputs that
     learn it, so they cannot identify it, and on denser inputs it interpolates every point
     (measured on the LASA handwriting set Multi_Models_1: ``LocalGP``'s shared search on thinned
     subsets stopped at 1.1e-4 s against their 2.6e-3 s spacing, and the mean stepped 119x further
     than any demonstration between two samples; one global ``HeteroscedasticGP`` on every tenth
-    sample stopped at 3.4e-5 s, a step of 3.1x). Used with the default kernel only: an explicit
-    kernel's bounds are the user's."""
+    sample stopped at 3.4e-5 s, a step of 3.1x).
+
+    Ceiling: the opposite degenerate optimum, "all noise": where demonstrations spread widely
+    around a slowly moving mean, the heteroscedastic noise absorbs the mean's motion and the
+    length scale runs away (LASA Sharpc, one fold: 68 s on 4.5 s of data). Every local window,
+    a fraction of the span, is then a constant, neighbouring constants differ, and the mean
+    steps where the mixture passes from one to the next (3.3x the demonstrations' largest step;
+    0.95x with the ceiling, the held-out likelihood unchanged)."""
     gaps = []
     for Xs in inputs:
         for j in range(Xs.shape[1]):
             u = np.unique(Xs[:, j])
             if u.size > 1:
                 gaps.append(float(np.median(np.diff(u))))
-    if not gaps:
+    floor = float(np.median(gaps)) if gaps else 0.0
+    ceiling = MAX_LENGTH_SCALE_FRACTION * span if span else math.inf
+    if floor == 0.0 and math.isinf(ceiling):
         return kernel
-    floor = float(np.median(gaps))
     out = kernel.clone()
     for leaf in out.leaves():
         if isinstance(leaf, SquaredExponential):
             low, high = (float(b) for b in leaf.length_scale_bounds)
             low = min(max(low, floor), high)
+            high = max(min(high, ceiling), low)
             leaf.length_scale_bounds = (low, high)
             leaf.length_scale = np.clip(leaf.length_scale, low, high)
     return out
+
+
+def input_span(X: NDArray[np.float64]) -> float:
+    """The largest range ``max - min`` of a feature of ``X`` (the ``span`` of
+    :func:`bound_length_scale`)."""
+    return float(np.max(np.ptp(X, axis=0))) if X.size else 0.0
 
 
 def _collapsed(kernel: Kernel) -> bool:
@@ -845,7 +871,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
         yn = (y - self._y_mean) / self._y_std
         lo, hi = check_noise_bounds(self.noise_bounds)
         if self.kernel is None:  # no length scale below the inputs' own spacing
-            kernel = floor_length_scale(default_kernel(), [X])
+            kernel = bound_length_scale(default_kernel(), [X], input_span(X))
         else:
             kernel = self.kernel
         result = fit_noise_model(

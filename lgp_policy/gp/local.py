@@ -57,12 +57,14 @@ window's width beyond its training inputs, each evaluated at the nearest point o
 and can disagree at their common edge (on the LASA handwriting set by up to half the data's
 range); the blend spreads that over a twentieth of a window instead of one input spacing.
 
-Length-scale floor. With the default kernel, a search (the shared one, or each local model's
+Length-scale bounds. With the default kernel, a search (the shared one, or each local model's
 with ``hyperparameters="local"``) cannot take the squared exponential's length scale below the
 median spacing of the inputs that learn it (the thinned subsets, or the model's own inputs):
 shorter, it is white noise on those inputs, which cannot identify it, while on the denser full
-data it interpolates single points
-(:func:`~lgp_policy.gp.heteroscedastic.floor_length_scale`). An explicit kernel's bounds are
+data it interpolates single points. Nor can it go above half the span of all the training inputs:
+longer, the heteroscedastic noise absorbs the mean's motion ("all noise"), every window becomes a
+constant and the mean steps between them
+(:func:`~lgp_policy.gp.heteroscedastic.bound_length_scale`). An explicit kernel's bounds are
 used as given.
 
 Input units (``input_scale``). Everything above runs on ``X / input_scale_`` (one divisor per
@@ -106,11 +108,12 @@ from lgp_policy.gp.heteroscedastic import (
     STOPPED_EARLY,
     HeteroscedasticGP,
     _data_scale,
+    bound_length_scale,
     check_method,
     check_noise_bounds,
     em_warning,
     fit_noise_model,
-    floor_length_scale,
+    input_span,
     most_likely_em_many,
     signal_kernel,
 )
@@ -591,10 +594,12 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         return plan
 
     def _learning_kernel(self, kernel: Kernel, inputs: list[NDArray[np.float64]]) -> Kernel:
-        """The kernel a search starts from: the default kernel with its length scale floored at
-        the spacing of the ``inputs`` that learn it (``floor_length_scale``); an explicit kernel
-        as given."""
-        return floor_length_scale(kernel, inputs) if self.kernel is None else kernel
+        """The kernel a search starts from: the default kernel with its length scale bounded
+        below by the spacing of the ``inputs`` that learn it and above by half the span of all
+        the training inputs (``bound_length_scale``); an explicit kernel as given."""
+        if self.kernel is not None:
+            return kernel
+        return bound_length_scale(kernel, inputs, input_span(self._X_fit))
 
     def _em_models(self, plan: dict[str, Any], learned: Any) -> list[HeteroscedasticGP]:
         """The local models from the plan and the shared EM's result ``learned``."""

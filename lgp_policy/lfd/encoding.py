@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lgp_policy.gp.heteroscedastic import _data_scale
+from lgp_policy.gp.heteroscedastic import MAX_LENGTH_SCALE_FRACTION, _data_scale
 from lgp_policy.gp.local import DEFAULT_COMBINE
 from lgp_policy.lfd.demonstrations import check_finite, check_time_stamps, real_array
 
@@ -404,7 +404,7 @@ class DemonstrationEncoder:
             1.0,
             max(self.length_scale, min_ls),
             variance_bounds=(1e-2, 1e2),
-            length_scale_bounds=(min_ls, 0.5),
+            length_scale_bounds=(min_ls, MAX_LENGTH_SCALE_FRACTION),  # phase range 1
         ) + WhiteNoise(self.noise_level)
 
     def _make_model(self) -> Any:

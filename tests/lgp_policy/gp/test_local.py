@@ -392,6 +392,38 @@ def test_default_kernel_length_scale_stays_above_the_input_spacing():
     assert local_module.signal_kernel(kept).length_scale_bounds == (1e-5, 1e5)
 
 
+def _wide_spread_demonstrations(seed: int):
+    """Six demonstrations on their own stamps over 4 s, each a slow mean plus its own offset
+    that grows with t: the spread between them swamps the mean's motion."""
+    rng = np.random.default_rng(seed)
+    T, Y = [], []
+    for _ in range(6):
+        t = np.sort(rng.uniform(0.0, 4.0, 300))
+        offset = rng.normal(0.0, 1.0)
+        T.append(t)
+        Y.append(0.3 * np.sin(0.5 * t) + offset * (0.5 + 0.25 * t) + 0.01 * rng.normal(size=300))
+    return np.concatenate(T)[:, None], np.concatenate(Y)
+
+
+def test_default_kernel_length_scale_stays_below_half_the_input_span():
+    """The opposite degenerate optimum ("all noise"): where the demonstrations' spread swamps the
+    mean's motion, the search ran the length scale away (LocalGP: 114 s, one global
+    HeteroscedasticGP: 1e5 s, on 4 s of data), and every window became a constant. With the
+    default kernel it stays below half the inputs' span; an explicit kernel's bounds are kept."""
+    X, y = _wide_spread_demonstrations(seed=1)
+    span = float(np.ptp(X))
+    gp = LocalGP(random_state=0).fit(X, y)
+    assert signal_length_scale(gp) <= 0.5 * span * (1 + 1e-9)
+    Xh, yh = _wide_spread_demonstrations(seed=0)
+    het = HeteroscedasticGP(random_state=0).fit(Xh[::3], yh[::3])
+    ls = float(local_module.signal_kernel(het.gp_.kernel_).length_scale)
+    assert ls <= 0.5 * float(np.ptp(Xh[::3])) * (1 + 1e-9)
+    explicit = SquaredExponential(1.0, 1.0, length_scale_bounds=(1e-5, 1e5)) + WhiteNoise(0.1)
+    gp = LocalGP(explicit, random_state=0).fit(X, y)
+    kept = gp._em_plan(explicit, gp._X_fit, y, gp._index_sets, None)["kernel"]
+    assert local_module.signal_kernel(kept).length_scale_bounds == (1e-5, 1e5)
+
+
 def signal_length_scale(gp: LocalGP) -> float:
     return float(local_module.signal_kernel(gp.models_[0].gp_.kernel_).length_scale)
 
