@@ -113,6 +113,7 @@ from lgp_policy.gp.heteroscedastic import (
     check_noise_bounds,
     em_warning,
     fit_noise_model,
+    fixed_gp,
     input_span,
     most_likely_em_many,
     signal_kernel,
@@ -138,6 +139,11 @@ SKIP_DISTANCE = 9.0
 #: The local noise functions are blended over this fraction of a model's window (per feature,
 #: at least one input spacing) beyond its training inputs (``LocalGP._noise_weights``).
 NOISE_BLEND = 0.05
+
+#: A local noise function also learns from the other models' log-noise targets up to this
+#: fraction of its window's width (per feature) beyond its training inputs
+#: (``_share_noise_targets``).
+NOISE_SHARE = 0.25
 
 #: ``input_scale="auto"`` rescales a feature by powers of this base (an SI prefix step).
 INPUT_SCALE_BASE = 1000.0
@@ -625,12 +631,14 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             params["noise_kernel"] = noise_kernel
             if plan["complete"]:  # every model took part with all its data: its result is final
                 self._warn_em(statuses)
-                return [
+                complete = [
                     HeteroscedasticGP._from_em(
                         learned, i, Xl, yl, 0.0, 1.0, kernel=kernel, **params
                     )
                     for i, (Xl, yl) in enumerate(datasets)
                 ]
+                _share_noise_targets(complete, datasets)
+                return complete
         models = []
         for Xl, yl in datasets:
             if self.hyperparameters == "local" and self.optimizer is not None:
@@ -652,6 +660,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
                 HeteroscedasticGP._from_em(result, 0, Xl, yl, 0.0, 1.0, kernel=kernel, **params)
             )
         self._warn_em(statuses)
+        _share_noise_targets(models, datasets)
         return models
 
     def _warn_em(self, statuses: list[str]) -> None:
@@ -845,6 +854,53 @@ def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
     for e, plan, result in zip(columns, plans, learned, strict=True):
         e.models_ = e._em_models(plan, result)
         e._prepare_prediction()
+
+
+def _share_noise_targets(models: list[HeteroscedasticGP], datasets) -> None:
+    """Refit every local noise function on its own log-noise targets and those of the other
+    models whose inputs lie within ``NOISE_SHARE`` of its window's width (per feature) beyond
+    its training inputs, with its z-process's hyperparameters as learnt.
+
+    Each noise function is an estimate from its own window, so at a window's edge it only
+    extrapolates its own targets, and two neighbours disagreed there by up to 4x (LASA heee:
+    6.4 against 1.6 mm where the demonstrations end at different times); the std then stepped
+    where ``r(x)`` passes from one to the other. With the targets near the edge shared, both
+    estimate the noise there from the same data. The local latent models are unchanged.
+    A model whose EM kept its homoscedastic step has no z-process and is left as it is (its
+    targets are not shared either)."""
+    targets: list[tuple[NDArray[np.float64], ...] | None] = []
+    for model in models:
+        zgp = model.noise_gp_
+        if zgp is None:
+            targets.append(None)
+            continue
+        d = zgp._data  # the distinct inputs, their (mean) targets and the known target noise
+        noise = zgp._noise_level
+        targets.append((d.X, d.ybar[:, 0], (noise + zgp._alpha_u) / d.counts - noise))
+    if sum(t is not None for t in targets) < 2:
+        return
+    boxes = np.stack([np.stack([X.min(axis=0), X.max(axis=0)]) for X, _ in datasets])
+    margin = NOISE_SHARE * (boxes[:, 1] - boxes[:, 0])
+    lo, hi = boxes[:, 0] - margin, boxes[:, 1] + margin
+    refits: list[GaussianProcess | None] = []
+    for l, own in enumerate(targets):
+        parts = []
+        if own is not None:
+            for o, other in enumerate(targets):
+                if other is None or o == l:
+                    continue
+                near = np.all((other[0] >= lo[l]) & (other[0] <= hi[l]), axis=1)
+                if np.any(near):
+                    parts.append(tuple(a[near] for a in other))
+        if own is None or not parts:
+            refits.append(None)
+            continue
+        U, z, var = (np.concatenate([own[i], *(p[i] for p in parts)]) for i in range(3))
+        kernel = models[l].noise_gp_.kernel_  # type: ignore[union-attr]
+        refits.append(fixed_gp(kernel, alpha=var, collapse_replicates=True).fit(U, z))
+    for model, refit in zip(models, refits, strict=True):
+        if refit is not None:
+            model.noise_gp_ = refit
 
 
 def _taper(logw: NDArray[np.float64], relevant: NDArray[np.bool_]) -> NDArray[np.float64]:
