@@ -140,8 +140,8 @@ SKIP_DISTANCE = 9.0
 #: at least one input spacing) beyond its training inputs (``LocalGP._noise_weights``).
 NOISE_BLEND = 0.05
 
-#: A local noise function also learns from the other models' log-noise targets up to this
-#: fraction of its window's width (per feature) beyond its training inputs
+#: A local noise function also learns from the other models' single-residual log-noise targets
+#: up to this fraction of its window's width (per feature) beyond its training inputs
 #: (``_share_noise_targets``).
 NOISE_SHARE = 0.25
 
@@ -857,27 +857,42 @@ def _fit_columns_in_lockstep(columns: list[LocalGP], X, y) -> None:
 
 
 def _share_noise_targets(models: list[HeteroscedasticGP], datasets) -> None:
-    """Refit every local noise function on its own log-noise targets and those of the other
-    models whose inputs lie within ``NOISE_SHARE`` of its window's width (per feature) beyond
-    its training inputs, with its z-process's hyperparameters as learnt.
+    """Refit every local noise function on its own log-noise targets and on the other models'
+    single-residual targets (inputs without replicates) within ``NOISE_SHARE`` of its window's
+    width (per feature) beyond its training inputs, with its z-process's hyperparameters as
+    learnt.
 
     Each noise function is an estimate from its own window, so at a window's edge it only
-    extrapolates its own targets, and two neighbours disagreed there by up to 4x (LASA heee:
-    6.4 against 1.6 mm where the demonstrations end at different times); the std then stepped
-    where ``r(x)`` passes from one to the other. With the targets near the edge shared, both
-    estimate the noise there from the same data. The local latent models are unchanged.
-    A model whose EM kept its homoscedastic step has no z-process and is left as it is (its
-    targets are not shared either)."""
+    extrapolates its own targets, and on distinct inputs two neighbours disagreed there by up
+    to 4x (LASA heee: 6.4 against 1.6 mm where the demonstrations end at different times); the
+    std then stepped where ``r(x)`` passes from one to the other. With the targets near the edge
+    shared, both estimate the noise there from the same data. Targets of replicated inputs (a
+    phase grid: the mean of ``m`` demonstrations' squares at each step) are not shared: there
+    the spread is measured at every step of the grid, and sharing it blurred the coffee
+    policy's std where the demonstrations' spread drops fast (3 of its 510 target episodes
+    lost, two layouts that failed at placing the cup across demonstration draws). The local
+    latent models are unchanged. A model whose EM kept its homoscedastic step has no z-process
+    and is left as it is (its targets are not shared either)."""
     targets: list[tuple[NDArray[np.float64], ...] | None] = []
-    for model in models:
+    shared: list[tuple[NDArray[np.float64], ...] | None] = []
+    for model, (X, _) in zip(models, datasets, strict=True):
         zgp = model.noise_gp_
         if zgp is None:
             targets.append(None)
+            shared.append(None)
             continue
         d = zgp._data  # the distinct inputs, their (mean) targets and the known target noise
         noise = zgp._noise_level
-        targets.append((d.X, d.ybar[:, 0], (noise + zgp._alpha_u) / d.counts - noise))
-    if sum(t is not None for t in targets) < 2:
+        mine = (d.X, d.ybar[:, 0], (noise + zgp._alpha_u) / d.counts - noise)
+        targets.append(mine)
+        # the z-process sits on the distinct inputs (in its own order): which are single
+        U, _, counts = unique_rows(X)
+        order = np.lexsort(d.X.T[::-1])
+        single = np.zeros(d.X.shape[0], dtype=bool)
+        if U.shape == d.X.shape and np.array_equal(U, d.X[order]):
+            single[order] = counts == 1
+        shared.append(tuple(a[single] for a in mine) if np.any(single) else None)
+    if not any(t is not None for t in shared):
         return
     boxes = np.stack([np.stack([X.min(axis=0), X.max(axis=0)]) for X, _ in datasets])
     margin = NOISE_SHARE * (boxes[:, 1] - boxes[:, 0])
@@ -886,7 +901,7 @@ def _share_noise_targets(models: list[HeteroscedasticGP], datasets) -> None:
     for l, own in enumerate(targets):
         parts = []
         if own is not None:
-            for o, other in enumerate(targets):
+            for o, other in enumerate(shared):
                 if other is None or o == l:
                     continue
                 near = np.all((other[0] >= lo[l]) & (other[0] <= hi[l]), axis=1)
