@@ -439,9 +439,9 @@ def _spread_that_drops(seed: int):
 
 @pytest.mark.parametrize("seed", [0, 2, 4])
 def test_neighbouring_noise_functions_agree_at_their_common_edge(seed):
-    """Each window's noise function also learns from its neighbours' log-noise targets near its
-    edges, so two neighbours' noise std at their common edge agree within 25% (each from its own
-    targets only: 1.49-1.78x apart on these seeds)."""
+    """On distinct time stamps each window's noise function also learns from its neighbours'
+    log-noise targets near its edges, so two neighbours' noise std at their common edge agree
+    within 25% (each from its own targets only: 1.49-1.78x apart on these seeds)."""
     X, y = _spread_that_drops(seed)
     gp = LocalGP(random_state=0).fit(X, y)
     assert len(gp.models_) >= 4
@@ -453,6 +453,23 @@ def test_neighbouring_noise_functions_agree_at_their_common_edge(seed):
         r_left = local_module._noise_normalized(left, box_l[1][None, :])[0]
         r_right = local_module._noise_normalized(right, box_r[0][None, :])[0]
         assert np.sqrt(max(r_left, r_right) / min(r_left, r_right)) < 1.25
+
+
+def test_replicated_grid_keeps_each_window_its_own_noise_targets(monkeypatch):
+    """On a phase grid every input is replicated (the encoder's case): no log-noise target is
+    shared between windows, so the model equals one fitted without any sharing."""
+    X, y = _spread_that_drops(0)
+    grid = np.round(X * 50.0) / 50.0  # the six demonstrations on one 50 Hz grid
+    grid_points = np.linspace(0.0, 4.0, 801)[:, None]
+    shared = LocalGP(random_state=0).fit(grid, y)
+    monkeypatch.setattr(local_module, "_share_noise_targets", lambda *args: None)
+    alone = LocalGP(random_state=0).fit(grid, y)
+    for a, b in zip(
+        shared.predict(grid_points, return_std=True),
+        alone.predict(grid_points, return_std=True),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(a, b)
 
 
 def signal_length_scale(gp: LocalGP) -> float:
