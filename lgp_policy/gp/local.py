@@ -55,7 +55,11 @@ inputs surround ``x``, blended with its neighbours over ``NOISE_BLEND`` (a twent
 window's width beyond its training inputs, each evaluated at the nearest point of its own window
 (``LocalGP._noise_weights``). Neighbouring noise functions are estimated from different data
 and can disagree at their common edge (on the LASA handwriting set by up to half the data's
-range); the blend spreads that over a twentieth of a window instead of one input spacing.
+range); the blend spreads that over a twentieth of a window instead of one input spacing. On
+distinct inputs each noise function is also refitted on the other windows' single-residual
+log-noise targets within ``NOISE_SHARE`` (a quarter) of its window beyond its inputs
+(``_share_noise_targets``), so that neighbours estimate the noise at their edge from the same
+data; a replicated grid keeps each window's own targets.
 
 Length-scale bounds. With the default kernel, a search (the shared one, or each local model's
 with ``hyperparameters="local"``) cannot take the squared exponential's length scale below the
