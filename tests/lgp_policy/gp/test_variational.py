@@ -93,7 +93,7 @@ def test_constant_noise_costs_nothing():
 def test_vhgp_is_an_option_with_the_estimator_contract():
     from sklearn.base import clone
 
-    est = HeteroscedasticGP(method="vhgp", max_iter=50, noise_bounds=(1e-2, 5.0))
+    est = HeteroscedasticGP(method="vhgp", max_iter=100, noise_bounds=(1e-2, 5.0))
     twin = clone(est)
     assert twin.get_params(deep=False)["method"] == "vhgp"
     assert est.get_params()["method"] == "vhgp" and "method" in HeteroscedasticGP().get_params()
