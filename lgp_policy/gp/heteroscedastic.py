@@ -870,7 +870,7 @@ class HeteroscedasticGP(NoisePredictionsMixin, ParamsMixin):
             self._y_mean, self._y_std, work = 0.0, 1.0, scale
         yn = (y - self._y_mean) / self._y_std
         lo, hi = check_noise_bounds(self.noise_bounds)
-        if self.kernel is None:  # no length scale below the inputs' own spacing
+        if self.kernel is None:  # length scale between the spacing and half the span of X
             kernel = bound_length_scale(default_kernel(), [X], input_span(X))
         else:
             kernel = self.kernel
