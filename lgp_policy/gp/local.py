@@ -633,36 +633,35 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             refit_kernel = learned.signal_kernel
             offset = learned.noise_offset  # one z mean for all models: no jump between them
             params["noise_kernel"] = noise_kernel
-            if plan["complete"]:  # every model took part with all its data: its result is final
-                self._warn_em(statuses)
-                complete = [
-                    HeteroscedasticGP._from_em(
-                        learned, i, Xl, yl, 0.0, 1.0, kernel=kernel, **params
+        if learned is not None and plan["complete"]:
+            # every model took part with all its data: its result is final
+            models = [
+                HeteroscedasticGP._from_em(learned, i, Xl, yl, 0.0, 1.0, kernel=kernel, **params)
+                for i, (Xl, yl) in enumerate(datasets)
+            ]
+        else:
+            models = []
+            for Xl, yl in datasets:
+                if self.hyperparameters == "local" and self.optimizer is not None:
+                    own = self._learning_kernel(kernel, [Xl])
+                    result = fit_noise_model(
+                        [(Xl, yl)], own, noise_kernel, method=self.method, **em
                     )
-                    for i, (Xl, yl) in enumerate(datasets)
-                ]
-                _share_noise_targets(complete, datasets)
-                return complete
-        models = []
-        for Xl, yl in datasets:
-            if self.hyperparameters == "local" and self.optimizer is not None:
-                own = self._learning_kernel(kernel, [Xl])
-                result = fit_noise_model([(Xl, yl)], own, noise_kernel, method=self.method, **em)
-            else:
-                result = fit_noise_model(
-                    [(Xl, yl)],
-                    kernel,
-                    noise_kernel,
-                    method=self.method,
-                    **{**em, "optimizer": None},
-                    learn=False,
-                    refit_kernel=refit_kernel,
-                    noise_offset=offset,
+                else:
+                    result = fit_noise_model(
+                        [(Xl, yl)],
+                        kernel,
+                        noise_kernel,
+                        method=self.method,
+                        **{**em, "optimizer": None},
+                        learn=False,
+                        refit_kernel=refit_kernel,
+                        noise_offset=offset,
+                    )
+                statuses.append(result.status)
+                models.append(
+                    HeteroscedasticGP._from_em(result, 0, Xl, yl, 0.0, 1.0, kernel=kernel, **params)
                 )
-            statuses.append(result.status)
-            models.append(
-                HeteroscedasticGP._from_em(result, 0, Xl, yl, 0.0, 1.0, kernel=kernel, **params)
-            )
         self._warn_em(statuses)
         _share_noise_targets(models, datasets)
         return models
@@ -879,7 +878,7 @@ def _share_noise_targets(models: list[HeteroscedasticGP], datasets) -> None:
     and is left as it is (its targets are not shared either)."""
     targets: list[tuple[NDArray[np.float64], ...] | None] = []
     shared: list[tuple[NDArray[np.float64], ...] | None] = []
-    for model, (X, _) in zip(models, datasets, strict=True):
+    for model in models:
         zgp = model.noise_gp_
         if zgp is None:
             targets.append(None)
@@ -889,12 +888,10 @@ def _share_noise_targets(models: list[HeteroscedasticGP], datasets) -> None:
         noise = zgp._noise_level
         mine = (d.X, d.ybar[:, 0], (noise + zgp._alpha_u) / d.counts - noise)
         targets.append(mine)
-        # the z-process sits on the distinct inputs (in its own order): which are single
-        U, _, counts = unique_rows(X)
-        order = np.lexsort(d.X.T[::-1])
-        single = np.zeros(d.X.shape[0], dtype=bool)
-        if U.shape == d.X.shape and np.array_equal(U, d.X[order]):
-            single[order] = counts == 1
+        # the z-process sits on the latent GP's distinct inputs, whose replicate counts say
+        # which targets are single residuals
+        latent = model.gp_._data
+        single = (latent.counts == 1) & np.array_equal(latent.X, d.X)
         shared.append(tuple(a[single] for a in mine) if np.any(single) else None)
     if not any(t is not None for t in shared):
         return
