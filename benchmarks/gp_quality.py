@@ -54,7 +54,9 @@ the demonstrations' largest step, and the bad folds. No calibration and no time 
 demonstrations last 2.5-5 s), so RMSE and coverage are not comparable with part 1's. With
 ``--lasa-time normalised`` each demonstration's stamps are divided by its duration (``t /
 t_end``: 6000 distinct inputs on [0, 1], every demonstration starting at 0 and ending at 1), and
-a ProMP and ``LocalGP()`` with the new-demonstration factor run on the same folds.
+a ProMP and ``LocalGP()`` with the new-demonstration factor run on the same folds. With
+``--lasa-frame start`` each demonstration is expressed relative to its own first sample (a
+start-point frame: no spread at t = 0, and the demonstrations end at different points).
 
 Part 3 (``--part coverage``), coverage of held-out demonstrations over many generated sets
 (``smooth_deviations``; not the sets above): separates the calibration mechanism from the
@@ -555,6 +557,13 @@ def main(argv: list[str] | None = None) -> None:
         help="time axis of --part lasa-raw: the stamps in seconds, or each demonstration's "
         "divided by its duration (then also RMSE, NLPD and coverage against a ProMP)",
     )
+    parser.add_argument(
+        "--lasa-frame",
+        choices=("world", "start"),
+        default="world",
+        help="coordinates of --part lasa-raw: the dataset's own (every demonstration ends at "
+        "the origin), or each demonstration relative to its first sample",
+    )
     args = parser.parse_args(argv)
     real_sets = {}
     for path in args.hetero_csv:  # read before any work: a bad file fails at once
@@ -572,7 +581,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.part == "lasa-raw":
         if args.lasa is None:
             parser.error("--part lasa-raw needs --lasa DIR")
-        lasa_raw_table(args.lasa, args.quick, args.lasa_time)
+        lasa_raw_table(args.lasa, args.quick, args.lasa_time, args.lasa_frame)
         return
     if args.part != "loo":
         print("## Generated heteroscedastic sets (200 train, 2000 test points)\n")
@@ -606,11 +615,15 @@ def main(argv: list[str] | None = None) -> None:
         print_summary({m: [rs[names.index(n)] for n in members] for m, rs in summary.items()})
 
 
-def lasa_raw_table(folder: Path, quick: bool, time_axis: str = "seconds") -> None:
+def lasa_raw_table(
+    folder: Path, quick: bool, time_axis: str = "seconds", frame: str = "world"
+) -> None:
     """Part 4: ``LocalGP()`` defaults on the LASA shapes' own time stamps (see the module
     docstring); ``time_axis="normalised"``: each demonstration's stamps divided by its duration
     (``t / t_end``, distinct inputs on [0, 1]), with a ProMP on the same folds and ``LocalGP()``'s
-    std also times ``new_demonstration_scale`` (``-cal``) for RMSE, NLPD and coverage."""
+    std also times ``new_demonstration_scale`` (``-cal``) for RMSE, NLPD and coverage.
+    ``frame="start"``: each demonstration relative to its own first sample (a start-point
+    frame: no spread at t = 0; the demonstrations then end at different points)."""
     promp = make_methods(100, ())["promp"]
 
     def default_local(t_tr, y_tr, t_te):
@@ -624,8 +637,11 @@ def lasa_raw_table(folder: Path, quick: bool, time_axis: str = "seconds") -> Non
     if time_axis == "normalised":
         methods.update({"local-cal": calibrated, "promp": promp})
     unit = "s" if time_axis == "seconds" else "t / t_end"
-    print(f"## LocalGP() on the LASA demonstrations' own time stamps ({unit}), all samples\n")
+    where = ", start-point frame" if frame == "start" else ""
+    print(f"## LocalGP() on the LASA demonstrations' own stamps ({unit}{where}), all samples\n")
     shapes = lasa_shapes(folder, quick)
+    if frame == "start":
+        shapes = {n: (T, Y - Y[:, :1]) for n, (T, Y) in shapes.items()}
     if time_axis == "normalised":
         shapes = {n: ((T - T[:, :1]) / (T[:, -1:] - T[:, :1]), Y) for n, (T, Y) in shapes.items()}
     rows = loo_table(shapes, methods)
