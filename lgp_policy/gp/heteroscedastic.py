@@ -400,6 +400,7 @@ def most_likely_em(
     refit_kernel: Kernel | None = None,
     log_noise_bounds: tuple[float, float] = LOG_NOISE_BOUNDS,
     noise_offset: float | None = None,
+    keep_homoscedastic: bool = True,
 ) -> EMResult:
     """Most-likely heteroscedastic EM (Kersting et al. 2007) on one or more data sets.
 
@@ -429,6 +430,10 @@ def most_likely_em(
         refit_kernel: kernel of ``f`` in step 4 (default: ``kernel`` without its noise term).
         log_noise_bounds: ``(low, high)`` bounds of ``log r`` in the units of the targets.
         noise_offset: fixed constant mean of the z-processes (``None``: learnt).
+        keep_homoscedastic: whether iteration 0 (the homoscedastic GP) can be the iteration kept.
+            ``False`` keeps the best heteroscedastic iteration (>= 1) even where the homoscedastic
+            GP's objective is higher: :class:`~lgp_policy.gp.local.LocalGP`'s local models with
+            shared hyperparameters, which must all have the shared prior of ``f`` (see there).
     """
     return most_likely_em_many(
         [datasets],
@@ -446,6 +451,7 @@ def most_likely_em(
         refit_kernel=refit_kernel,
         log_noise_bounds=log_noise_bounds,
         noise_offset=noise_offset,
+        keep_homoscedastic=keep_homoscedastic,
     )[0]
 
 
@@ -466,6 +472,7 @@ def most_likely_em_many(
     refit_kernel: Kernel | None = None,
     log_noise_bounds: tuple[float, float] = LOG_NOISE_BOUNDS,
     noise_offset: float | None = None,
+    keep_homoscedastic: bool = True,
 ) -> list[EMResult]:
     """Independent :func:`most_likely_em` runs, one per entry of ``problems`` (each a list of
     data sets that share hyperparameters: the local models of one output), in lockstep.
@@ -503,7 +510,7 @@ def most_likely_em_many(
     else:
         step1 = [[make(kernel).fit(X, y) for X, y in datasets] for datasets in problems]
     runs = [
-        _EMRun(datasets, gps, lo, hi, refit_kernel, noise_kernel)
+        _EMRun(datasets, gps, lo, hi, refit_kernel, noise_kernel, keep_homoscedastic)
         for datasets, gps in zip(problems, step1, strict=True)
     ]
     for _ in range(max_em_iter):
@@ -528,7 +535,9 @@ def most_likely_em_many(
 class _EMRun:
     """The state of one problem's most-likely EM (:func:`most_likely_em_many`)."""
 
-    def __init__(self, datasets, gps, lo, hi, refit_kernel, noise_kernel) -> None:
+    def __init__(
+        self, datasets, gps, lo, hi, refit_kernel, noise_kernel, keep_homoscedastic=True
+    ) -> None:
         self.datasets, self.gps, self.lo, self.hi = datasets, gps, lo, hi
         self.homoscedastic_kernel = gps[0].kernel_.clone()
         self.groups = []  # the GP's own distinct inputs: X, inverse, counts, log bias, log var
@@ -553,9 +562,11 @@ class _EMRun:
             self.zk = default_noise_kernel(_signal_length_scale(k0), (lo, hi))
         else:
             self.zk = noise_kernel.clone()
-        self.best_obj = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
+        lml0 = float(sum(gp.log_marginal_likelihood_value_ for gp in gps))
         self.n_total = sum(X.shape[0] for X, _ in datasets)
-        self.objective = [self.best_obj]
+        self.objective = [lml0]
+        # without keep_homoscedastic, iteration 1 replaces iteration 0 whatever its objective
+        self.best_obj = lml0 if keep_homoscedastic else -math.inf
         self.best: tuple[Any, ...] = (gps, [None] * len(gps), log_r0, self.sig, self.zk, 0)
         self.status, self.converged, self.n_iter = "max_em_iter reached", False, 0
         self.running = True

@@ -20,11 +20,20 @@ data's order as in the paper (replicates count once per consecutive run there). 
 ``X / input_scale_`` (see "Input units" below).
 
 Hyperparameters. ``hyperparameters="shared"`` (default): one set of kernel (and z-process)
-hyperparameters for all local models, learnt by maximising the *sum* of the local models' log
-marginal likelihoods (the product-of-experts likelihood, Deisenroth & Ng 2015) over an evenly
-spread subset of at most ``n_shared_models`` local models, each thinned to at most
-``shared_points`` distinct inputs (every k-th, with its replicates), so that learning costs the
-same for any ``n``; every local model then runs (its heteroscedastic EM) with them fixed.
+hyperparameters for all local models, learnt by maximising the *sum* of the log marginal
+likelihoods of a few data sets (the product-of-experts likelihood, Deisenroth & Ng 2015): every
+local model with all its data where there are at most ``n_shared_models`` of them with at most
+``shared_points`` distinct inputs each; otherwise the local models split into
+``SHARED_BLOCKS`` (4) contiguous runs (for sorted 1-D inputs: consecutive windows), each run's
+data thinned to at most ``shared_points`` distinct inputs (every k-th, with its replicates), so
+that learning costs the same for any ``n``. Each run spans several windows: a length scale
+longer than one window cannot be identified from that window (learnt from single thinned
+windows, LASA handwriting demonstrations in a start-point frame got 0.09 s where the same data
+in the world frame got 0.84 s, and the mean followed every demonstration that ended). Every
+local model then runs (its heteroscedastic EM) with the hyperparameters fixed, and keeps the
+learnt kernel of ``f``: a local EM whose homoscedastic start (another kernel of ``f``) had the
+higher objective used to keep that start, and the mixture then compared latent variances under
+two priors (see ``_em_models``).
 ``hyperparameters="local"`` (the paper's choice, Sec. IV: "individual parameterization and
 optimization"): every local model maximises its own log marginal likelihood from ``kernel``; with
 narrow local windows the individual estimates become unreliable (a window shorter than a length
@@ -149,6 +158,11 @@ NOISE_BLEND = 0.05
 #: (``_share_noise_targets``).
 NOISE_SHARE = 0.25
 
+#: Where the shared hyperparameters cannot be learnt from every local model with all its data,
+#: they are learnt from this many contiguous runs of local models, each thinned
+#: (``LocalGP._shared_data``).
+SHARED_BLOCKS = 4
+
 #: ``input_scale="auto"`` rescales a feature by powers of this base (an SI prefix step).
 INPUT_SCALE_BASE = 1000.0
 
@@ -189,8 +203,10 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         combine_noisy: combine the noisy predictive distributions (the known trap; for
             comparison only).
         hyperparameters: ``"shared"`` (default), ``"local"`` or ``"fixed"`` (module docstring).
-        n_shared_models: most local models used to learn shared hyperparameters.
-        shared_points: most distinct inputs per such model used for that (every k-th).
+        n_shared_models: most local models that learn shared hyperparameters each with all
+            their data; with more models, or more than ``shared_points`` distinct inputs in
+            one, :data:`SHARED_BLOCKS` thinned runs of models learn them (module docstring).
+        shared_points: most distinct inputs per data set that learns them (every k-th).
         n_neighbors: how many models (highest ``w``) the ``"nearest"`` rule mixes.
         order: ``"sorted"`` or ``"given"``: the order Algorithm 1 visits the points in.
         noise_kernel: z-process kernel of heteroscedastic local models (``None``: the bounded
@@ -526,23 +542,28 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
     def _shared_data(self, X, index_sets) -> tuple[list[NDArray[np.int64]], bool]:
         """Index sets that learn the shared hyperparameters, and whether they are complete.
 
-        At most ``n_shared_models`` local models, evenly spread, each thinned to at most
-        ``shared_points`` distinct inputs (every k-th, with all its replicates).
+        Complete: at most ``n_shared_models`` local models, none with more than
+        ``shared_points`` distinct inputs: one set per model, all its data. Otherwise the models
+        in :data:`SHARED_BLOCKS` contiguous runs (Algorithm 1's order: consecutive windows of
+        sorted 1-D inputs), each run's data thinned to at most ``shared_points`` distinct
+        inputs (every k-th, with all its replicates), so that every set spans a stretch of
+        several windows and together they span all the data.
         """
         n_models = len(index_sets)
-        k = min(n_models, self.n_shared_models)
-        chosen = np.unique(np.round(np.linspace(0, n_models - 1, k)).astype(np.int64))
-        subsets, complete = [], len(chosen) == n_models
-        for i in chosen:
-            idx = index_sets[i]
+        if n_models <= self.n_shared_models:
+            subsets = [np.asarray(idx) for idx in index_sets]
+            if all(unique_rows(X[idx])[0].shape[0] <= self.shared_points for idx in subsets):
+                return subsets, True
+        subsets = []
+        for run in np.array_split(np.arange(n_models), min(SHARED_BLOCKS, n_models)):
+            idx = np.concatenate([index_sets[i] for i in run])
             _, inverse, _ = unique_rows(X[idx])
             step = int(np.ceil((int(inverse.max()) + 1) / self.shared_points))
             if step > 1:
                 keep = (inverse % step) == 0
                 idx = idx[keep] if np.count_nonzero(keep) >= 2 else idx
-                complete = False
             subsets.append(idx)
-        return subsets, complete
+        return subsets, False
 
     def _fit_exact(self, kernel, X, Yn, index_sets, rng) -> list[GaussianProcess]:
         target = (lambda idx: Yn[idx, 0]) if self._single_target else (lambda idx: Yn[idx])
@@ -625,6 +646,14 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         }
         refit_kernel = None
         offset = None
+        # One prior for f in every local model: the "nearest" mixture weighs the models by
+        # their latent variances. Where the shared EM kept a heteroscedastic iteration, its
+        # kernel of f differs from iteration 0's homoscedastic one (on LASA's mixed-shape sets,
+        # a signal variance at its 1e-5 bound: "all noise"). A local EM that went back to
+        # iteration 0 had that prior and a latent variance far below its neighbours' from a
+        # window that knew nothing of f; entering the selection, it took most of the weight
+        # within one sample (the mean stepped 7-10x the demonstrations' largest step).
+        shared_prior = None
         statuses: list[str] = []
         if learned is not None:
             statuses.append(learned.status)
@@ -633,6 +662,8 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             refit_kernel = learned.signal_kernel
             offset = learned.noise_offset  # one z mean for all models: no jump between them
             params["noise_kernel"] = noise_kernel
+            if learned.best_iter > 0:
+                shared_prior = refit_kernel
         if learned is not None and plan["complete"]:
             # every model took part with all its data: its result is final
             models = [
@@ -657,6 +688,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
                         learn=False,
                         refit_kernel=refit_kernel,
                         noise_offset=offset,
+                        keep_homoscedastic=shared_prior is None,
                     )
                 statuses.append(result.status)
                 models.append(

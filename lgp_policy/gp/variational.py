@@ -191,6 +191,7 @@ def variational_heteroscedastic(
     refit_kernel: Kernel | None = None,
     log_noise_bounds: tuple[float, float] = LOG_NOISE_BOUNDS,
     noise_offset: float | None = None,
+    keep_homoscedastic: bool = True,
     **_em_only: Any,
 ) -> EMResult:
     """VHGP on one or more data sets (module docstring); the same contract as
@@ -203,7 +204,8 @@ def variational_heteroscedastic(
     (the EM's ``max_em_iter``, ``tol`` and ``n_samples`` do not apply and are ignored).
 
     ``objective`` is ``[homoscedastic log marginal likelihood, bound]``; ``best_iter`` is 1 when
-    the heteroscedastic model is kept (bound above the homoscedastic evidence), else 0.
+    the heteroscedastic model is kept (bound above the homoscedastic evidence, or always with
+    ``keep_homoscedastic=False``), else 0.
     ``status``: ``"converged"``, ``"max_iter reached"`` or the optimiser's message.
     """
     lo, hi = (float(b) for b in log_noise_bounds)
@@ -341,7 +343,7 @@ def variational_heteroscedastic(
     else:
         status, converged = f"optimiser stopped: {res.message}", False
     objective_values = [hom_lml, float(F)]
-    if F > hom_lml:
+    if F > hom_lml or not keep_homoscedastic:
         gps = [
             make(sig, alpha=np.exp(lr)[s.inverse]).fit(X, y)
             for lr, s, (X, y) in zip(logs, sets, datasets, strict=True)

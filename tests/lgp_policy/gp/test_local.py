@@ -122,7 +122,9 @@ def test_given_order_runs_algorithm_1_as_written():
 
 
 def test_latent_product_is_calibrated_noisy_product_is_not():
-    """Multiplying noisy local predictions pulls to the prior and under-covers (known trap)."""
+    """Multiplying noisy local predictions pulls to the prior and under-covers (known trap):
+    0.81-0.86 here, depending on the learnt hyperparameters, against 0.93 for the latent
+    product."""
     X, y = demos(2000)
     X_test, y_test = held_out()
     params = {"threshold": 0.5, "max_points": 25, "local_model": "exact", "combine": "product"}
@@ -130,7 +132,7 @@ def test_latent_product_is_calibrated_noisy_product_is_not():
     noisy = LocalGP(kernel(), combine_noisy=True, **params).fit(X, y)
     cov_latent, cov_noisy = coverage(latent, X_test, y_test), coverage(noisy, X_test, y_test)
     assert cov_latent > 0.9
-    assert cov_noisy < 0.85
+    assert cov_noisy < 0.88 and cov_noisy < cov_latent - 0.05
     rmse = [
         np.sqrt(np.mean((m.predict(X_test) - truth(X_test[:, 0])) ** 2)) for m in (latent, noisy)
     ]
@@ -541,3 +543,45 @@ def test_fixed_hyperparameter_ems_reuse_their_factors_exactly(monkeypatch):
     np.testing.assert_array_equal(mean, m2)
     np.testing.assert_array_equal(std, s2)
     assert n_reused < n_fresh
+
+
+@pytest.mark.parametrize(
+    ("make", "seed"),
+    [(_wide_spread_demonstrations, 0), (_spread_that_drops, 1), (_spread_that_drops, 5)],
+)
+def test_every_local_model_keeps_the_shared_prior_of_f(make, seed):
+    """With shared hyperparameters every local model's latent GP has the one learnt kernel of f,
+    so the mixture compares like with like. A local EM whose homoscedastic start (iteration 0,
+    another kernel of f) had the higher objective used to keep it (on these sets up to 3 of 5-6
+    windows), with a latent variance unrelated to its neighbours'."""
+    X, y = make(seed)
+    gp = LocalGP(random_state=0).fit(X, y)
+    thetas = [m.gp_.kernel_.theta for m in gp.models_]
+    assert len(thetas) >= 5
+    for theta in thetas[1:]:
+        np.testing.assert_array_equal(theta, thetas[0])
+    assert all(m.gp_._noise_level == 0.0 for m in gp.models_)  # the noise is r(x), not a constant
+
+
+def test_shared_hyperparameters_learn_from_thinned_runs_that_span_the_data():
+    """More local models than ``n_shared_models`` (or too many inputs in one): the shared
+    hyperparameters learn from ``SHARED_BLOCKS`` contiguous runs of windows, each thinned to at
+    most ``shared_points`` distinct inputs, together spanning the data; a few small models
+    learn from all their data."""
+    X, y = _spread_that_drops(0)
+    gp = LocalGP(random_state=0, n_shared_models=4)
+    gp.fit(X, y)
+    subsets, complete = gp._shared_data(gp._X_fit, gp._index_sets)
+    assert not complete and len(subsets) == local_module.SHARED_BLOCKS < len(gp.models_)
+    runs = np.array_split(np.arange(len(gp.models_)), len(subsets))
+    spacing = float(np.ptp(X)) / np.unique(X).size
+    for idx, run in zip(subsets, runs, strict=True):
+        assert np.unique(X[idx]).size <= gp.shared_points
+        inputs = X[np.concatenate([gp._index_sets[i] for i in run])]
+        step = int(np.ceil(np.unique(inputs).size / gp.shared_points))
+        assert X[idx].min() == inputs.min()  # from the run's first window ...
+        assert X[idx].max() >= inputs.max() - step * 2 * spacing  # ... to its last
+    small = LocalGP(random_state=0, max_points=50, shared_points=50, n_shared_models=100)
+    small.fit(X[::6], y[::6])
+    subsets, complete = small._shared_data(small._X_fit, small._index_sets)
+    assert complete and len(subsets) == len(small.models_)
