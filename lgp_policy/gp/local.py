@@ -653,7 +653,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
         # iteration 0 had that prior and a latent variance far below its neighbours' from a
         # window that knew nothing of f; entering the selection, it took most of the weight
         # within one sample (the mean stepped 7-10x the demonstrations' largest step).
-        shared_prior = None
+        keep_homoscedastic = True
         statuses: list[str] = []
         if learned is not None:
             statuses.append(learned.status)
@@ -662,8 +662,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
             refit_kernel = learned.signal_kernel
             offset = learned.noise_offset  # one z mean for all models: no jump between them
             params["noise_kernel"] = noise_kernel
-            if learned.best_iter > 0:
-                shared_prior = refit_kernel
+            keep_homoscedastic = learned.best_iter == 0
         if learned is not None and plan["complete"]:
             # every model took part with all its data: its result is final
             models = [
@@ -688,7 +687,7 @@ class LocalGP(NoisePredictionsMixin, ParamsMixin):
                         learn=False,
                         refit_kernel=refit_kernel,
                         noise_offset=offset,
-                        keep_homoscedastic=shared_prior is None,
+                        keep_homoscedastic=keep_homoscedastic,
                     )
                 statuses.append(result.status)
                 models.append(
