@@ -53,7 +53,8 @@ demonstration out, per output dimension: the largest step of the predicted mean 
 the demonstrations' largest step, and the bad folds. No calibration and no time alignment (the
 demonstrations last 2.5-5 s), so RMSE and coverage are not comparable with part 1's. With
 ``--lasa-time normalised`` each demonstration's stamps are divided by its duration (``t /
-t_end``: 6000 distinct inputs on [0, 1], every demonstration starting at 0 and ending at 1), and
+t_end``: every demonstration starting at 0 and ending at 1; LASA samples each demonstration at
+a fixed rate, so this is one grid of 1000 points with 6 replicates, up to rounding), and
 a ProMP and ``LocalGP()`` with the new-demonstration factor run on the same folds. With
 ``--lasa-frame start`` each demonstration is expressed relative to its own first sample (a
 start-point frame: no spread at t = 0, and the demonstrations end at different points).
@@ -620,10 +621,10 @@ def lasa_raw_table(
 ) -> None:
     """Part 4: ``LocalGP()`` defaults on the LASA shapes' own time stamps (see the module
     docstring); ``time_axis="normalised"``: each demonstration's stamps divided by its duration
-    (``t / t_end``, distinct inputs on [0, 1]), with a ProMP on the same folds and ``LocalGP()``'s
-    std also times ``new_demonstration_scale`` (``-cal``) for RMSE, NLPD and coverage.
-    ``frame="start"``: each demonstration relative to its own first sample (a start-point
-    frame: no spread at t = 0; the demonstrations then end at different points)."""
+    (``t / t_end``: one grid on [0, 1] up to rounding), with a ProMP on the same folds and
+    ``LocalGP()``'s std also times ``new_demonstration_scale`` (``-cal``) for RMSE, NLPD and
+    coverage. ``frame="start"``: each demonstration relative to its own first sample (a
+    start-point frame: no spread at t = 0; the demonstrations then end at different points)."""
     promp = make_methods(100, ())["promp"]
 
     def default_local(t_tr, y_tr, t_te):

@@ -180,3 +180,51 @@ def test_noise_bounds_are_validated():
     for bad in [(0.0, 1.0), (1.0, 0.5), (np.nan, 1.0), "ab"]:
         with pytest.raises(ValueError, match="noise_bounds"):
             HeteroscedasticGP(noise_bounds=bad).fit(X, y)
+
+
+def test_snap_near_replicates_merges_rounding_not_data():
+    from lgp_policy.gp._validation import REPLICATE_RTOL, snap_near_replicates
+
+    grid = np.linspace(0.0, 1.0, 11)
+    rounded = np.nextafter(np.nextafter(grid, 2.0), 2.0)  # the same grid, two ulps off
+    X = np.c_[np.r_[grid, rounded], np.r_[grid, grid + 10.0 * REPLICATE_RTOL]]
+    before = X.copy()
+    out = snap_near_replicates(X)
+    np.testing.assert_array_equal(X, before)  # the caller's array is not changed
+    np.testing.assert_array_equal(out[:11, 0], out[11:, 0])  # rounding: one input
+    assert np.unique(out[:, 0]).size == 11
+    assert np.max(np.abs(out[:, 0] - X[:, 0])) < 1e-15
+    np.testing.assert_array_equal(out[:, 1], X[:, 1])  # 10x the tolerance apart: data
+    distinct = np.linspace(0.0, 1.0, 50)[:, None]
+    assert snap_near_replicates(distinct) is distinct
+    # a wild value widens the range 1e8-fold; samples 1 ms apart stay apart
+    wild = np.r_[np.arange(0.0, 10.0, 1e-3), 1e9][:, None]
+    assert snap_near_replicates(wild) is wild
+
+
+@pytest.mark.parametrize("model", [LocalGP, HeteroscedasticGP])
+def test_normalised_time_of_demonstrations_of_different_durations_is_a_replicated_grid(model):
+    """Demonstrations sampled at a fixed number of steps but of different durations give
+    ``t / t_end`` on one grid up to rounding. The fit must be the fit on the exact grid: before,
+    the rounding split replicate groups and the length-scale floor (the median spacing of
+    distinct inputs) fell to 1e-16, and the std stepped between split and unsplit inputs."""
+    n = 120
+    rng = np.random.default_rng(3)
+    X_round, X_exact, y = [], [], []
+    for duration in (2.1, 2.7, 3.3, 3.9, 4.6):
+        t = np.arange(n) * (duration / 7.0 / (n - 1)) * 7.0  # seconds, with rounding
+        s = (t - t[0]) / (t[-1] - t[0])
+        X_round.append(s)
+        X_exact.append(np.arange(n) / (n - 1))
+        g = np.arange(n) / (n - 1)
+        y.append(np.sin(5.0 * g) + rng.normal(0.0, 0.3) * g * (1.0 - g) * 4.0)
+    X_round_a, X_exact_a = np.concatenate(X_round)[:, None], np.concatenate(X_exact)[:, None]
+    y_a = np.concatenate(y)
+    assert np.unique(X_round_a).size > n  # the rounding did split the grid
+    t_test = np.linspace(0.0, 1.0, 401)[:, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m_round, s_round = model().fit(X_round_a, y_a).predict(t_test, return_std=True)
+        m_exact, s_exact = model().fit(X_exact_a, y_a).predict(t_test, return_std=True)
+    np.testing.assert_allclose(m_round, m_exact, rtol=0, atol=1e-6 * np.std(y_a))
+    np.testing.assert_allclose(s_round, s_exact, rtol=1e-6)
