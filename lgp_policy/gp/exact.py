@@ -11,9 +11,9 @@ the unique inputs (``O(n_unique^3)`` instead of ``O(n^3)``); the posterior of ``
 to the dense GP's, and the log marginal likelihood of the full data differs from the collapsed one
 by the closed-form term ``_replicate_correction`` (within-group scatter and normalisers), which is
 added back together with its gradient, so hyperparameter learning is unchanged too. Inputs that
-are equal up to rounding (within ``REPLICATE_RTOL`` of a feature's range, e.g. ``t / t_end`` of
-demonstrations of different durations sampled at a fixed rate) are made equal first, by every
-``fit`` (:func:`~lgp_policy.gp._validation.snap_near_replicates`).
+are equal up to rounding (e.g. ``t / t_end`` of demonstrations of different durations sampled at
+a fixed rate) are made equal first, by every ``fit``
+(:func:`~lgp_policy.gp._validation.snap_near_replicates` says how close that is).
 """
 
 from __future__ import annotations

@@ -214,9 +214,9 @@ def test_normalised_time_of_demonstrations_of_different_durations_is_a_replicate
     for duration in (2.1, 2.7, 3.3, 3.9, 4.6):
         t = np.arange(n) * (duration / 7.0 / (n - 1)) * 7.0  # seconds, with rounding
         s = (t - t[0]) / (t[-1] - t[0])
+        g = np.arange(n) / (n - 1)  # the exact grid
         X_round.append(s)
-        X_exact.append(np.arange(n) / (n - 1))
-        g = np.arange(n) / (n - 1)
+        X_exact.append(g)
         y.append(np.sin(5.0 * g) + rng.normal(0.0, 0.3) * g * (1.0 - g) * 4.0)
     X_round_a, X_exact_a = np.concatenate(X_round)[:, None], np.concatenate(X_exact)[:, None]
     y_a = np.concatenate(y)
